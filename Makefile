@@ -1,0 +1,38 @@
+# respecd — two commands: `make run` (simulated rover) and `make test`.
+# A Jetson user points TORCH_SPEC at NVIDIA's wheel, e.g.
+#   make install TORCH_SPEC=/path/to/torch-2.5.0a0+nv24.08-cp310-cp310-linux_aarch64.whl
+PYTHON ?= python3
+VENV ?= .venv
+TORCH_SPEC ?= torch==2.13.0
+BIN := $(VENV)/bin
+ARGS ?=
+
+.PHONY: install run test bench weights policy lint clean
+
+install: $(VENV)/.installed
+
+$(VENV)/.installed: pyproject.toml Makefile
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet "$(TORCH_SPEC)"
+	$(BIN)/pip install --quiet -e ".[test]"
+	touch $@
+
+run: install
+	$(BIN)/respecd $(ARGS)
+
+test: install
+	$(BIN)/pytest -q
+
+bench: install
+	mkdir -p out
+	$(BIN)/respecd bench pipeline --json out/bench-pipeline.json
+
+weights: install
+	$(BIN)/respecd train --data sim --out respecd/perception/weights/sim-rover.pt
+
+lint: install
+	$(BIN)/ruff check respecd drivers tests
+
+clean:
+	rm -rf $(VENV) build dist *.egg-info out

@@ -1,0 +1,54 @@
+"""Command line: ``respecd`` runs the daemon; subcommands validate, train, inspect, bench.
+
+Subcommands live in their own modules, listed in ``COMMANDS`` and imported only when used,
+so ``respecd check-config`` does not import torch. Each module provides
+``add_arguments(parser)`` and ``main(args) -> int``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from respecd.errors import ConfigError, InputError
+
+# subcommand -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "check-config": ("respecd.cmd_config", "validate profiles; print FILE:LINE: problems, exit 2 if any"),
+    "schema": ("respecd.cmd_schema", "print the profile JSON Schema (for yaml-language-server)"),
+    "bench": ("respecd.cmd_bench", "run a benchmark, print figures, write JSON"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from respecd.cmd_run import add_arguments as add_run_arguments
+
+    parser = argparse.ArgumentParser(
+        prog="respecd", description="Adaptive multispectral sensing daemon (ReSPEC)."
+    )
+    add_run_arguments(parser)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module_name, help_text) in COMMANDS.items():
+        command = sub.add_parser(name, help=help_text, description=help_text)
+        importlib.import_module(module_name).add_arguments(command)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    module_name = COMMANDS[args.command][0] if args.command else "respecd.cmd_run"
+    try:
+        return int(importlib.import_module(module_name).main(args) or 0)
+    except (ConfigError, InputError) as err:
+        problems = getattr(err, "problems", None) or [str(err)]
+        for line in problems:
+            print(f"respecd: {line}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

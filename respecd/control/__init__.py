@@ -1,0 +1,1 @@
+"""Control: state, reward, tabular Q-learning, baselines, and applying actions."""

@@ -1,0 +1,39 @@
+"""The small exception tree every module raises from.
+
+``DriverUnavailableError`` means "not ready, retry later" (missing device or SDK); the
+supervisor retries it with backoff. ``ConfigError`` is fatal and becomes exit status 2.
+"""
+
+from __future__ import annotations
+
+
+class RespecdError(Exception):
+    """Root of every error respecd raises on purpose."""
+
+
+class ConfigError(RespecdError):
+    """A profile, checkpoint or input file is invalid. ``problems`` holds one line each."""
+
+    def __init__(self, message: str, problems: list[str] | None = None) -> None:
+        super().__init__(message)
+        self.problems = problems or [message]
+
+
+class InputError(RespecdError):
+    """A file given on the command line is missing or malformed (exit 2)."""
+
+
+class DriverError(RespecdError):
+    """A sensor driver failed."""
+
+
+class DriverUnavailableError(DriverError):
+    """The device or its SDK is absent right now; retry later."""
+
+
+class DriverIOError(DriverError):
+    """Reading from or writing to the device failed."""
+
+
+class DriverTimeoutError(DriverError):
+    """The device did not answer in time."""

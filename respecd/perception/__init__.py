@@ -1,0 +1,1 @@
+"""Perception: the fusion detector, cross-modal alignment and contribution attribution."""

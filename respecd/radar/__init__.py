@@ -1,0 +1,1 @@
+"""TI mmWave radar: data-port parser and chirp profiles (no I/O)."""

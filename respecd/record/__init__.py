@@ -1,0 +1,1 @@
+"""Recording sessions to MCAP and replaying them."""
