@@ -14,7 +14,7 @@ import math
 from collections import deque
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field, replace
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -186,6 +186,19 @@ class Decimator:
         return False
 
 
+@dataclass(frozen=True)
+class DriverContext:
+    """What a driver may need beyond its own profile entry.
+
+    ``simulation`` is the profile's ``simulation:`` section (simulated drivers build their
+    shared, seeded world from it); ``replay`` is an opened session log for replay drivers.
+    """
+
+    seed: int = 0
+    simulation: Any = None
+    replay: Any = None
+
+
 @dataclass
 class DriverHealth:
     """Counters shown in the status line and logs."""
@@ -212,9 +225,10 @@ class Driver(abc.ABC):
 
     key: ClassVar[str]
 
-    def __init__(self, config: DriverConfigBase, clock: Clock) -> None:
+    def __init__(self, config: DriverConfigBase, clock: Clock, context: DriverContext | None = None) -> None:
         self.config = config
         self.clock = clock
+        self.context = context or DriverContext()
         self.name = config.name
         self.modality: Modality = config.modality
         self.health = DriverHealth()
