@@ -45,7 +45,8 @@ class Extrinsics(StrictModel):
         (0.0, 0.0, 0.0), description="Roll, pitch, yaw (degrees) from this sensor to the RGB camera frame."
     )
     translation_m: tuple[float, float, float] = Field(
-        (0.0, 0.0, 0.0), description="Position of this sensor in the RGB camera frame (metres, x right, y down, z forward)."
+        (0.0, 0.0, 0.0),
+        description="Position of this sensor in the RGB camera frame (metres, x right, y down, z forward).",
     )
 
 

@@ -24,9 +24,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 def build_parser() -> argparse.ArgumentParser:
     from respecd.cmd_run import add_arguments as add_run_arguments
 
-    parser = argparse.ArgumentParser(
-        prog="respecd", description="Adaptive multispectral sensing daemon (ReSPEC)."
-    )
+    parser = argparse.ArgumentParser(prog="respecd", description="Adaptive multispectral sensing daemon (ReSPEC).")
     add_run_arguments(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module_name, help_text) in COMMANDS.items():

@@ -28,7 +28,10 @@ DEFAULT_PROFILE = "builtin:sim-rover"
 
 class SyncConfig(StrictModel):
     max_rate_hz: float = Field(
-        MAX_RATE_HZ, ge=MIN_RATE_HZ, le=MAX_RATE_HZ, description="Global cap on the tick rate (the paper's Jetson saturated at 27)."
+        MAX_RATE_HZ,
+        ge=MIN_RATE_HZ,
+        le=MAX_RATE_HZ,
+        description="Global cap on the tick rate (the paper's Jetson saturated at 27).",
     )
     min_rate_hz: float = Field(MIN_RATE_HZ, ge=MIN_RATE_HZ, le=MAX_RATE_HZ, description="Floor on the tick rate.")
     window_s: float = Field(1.0, ge=0.25, le=10, description="Window for jitter and stale-ratio statistics (s).")
@@ -37,7 +40,9 @@ class SyncConfig(StrictModel):
     stale_fair: float = Field(0.1, ge=0, le=1, description="Stale-frame ratio above which health is fair.")
     stale_poor: float = Field(0.3, ge=0, le=1, description="Stale-frame ratio above which health is poor.")
     frame_queue: int = Field(8, ge=1, le=1024, description="Frames buffered per sensor before the oldest is dropped.")
-    bundle_queue: int = Field(2, ge=1, le=64, description="Bundles buffered for perception before the oldest is dropped.")
+    bundle_queue: int = Field(
+        2, ge=1, le=64, description="Bundles buffered for perception before the oldest is dropped."
+    )
 
     @model_validator(mode="after")
     def _ordered_thresholds(self) -> SyncConfig:
@@ -116,7 +121,7 @@ def load_profile(source: str | Path = DEFAULT_PROFILE) -> Any:
 
 def _read_source(source: str) -> tuple[str, str]:
     if source.startswith(BUILTIN_PREFIX):
-        name = source[len(BUILTIN_PREFIX):]
+        name = source[len(BUILTIN_PREFIX) :]
         resource = resources.files("respecd") / "profiles" / f"{name}.yaml"
         if not resource.is_file():
             raise ConfigError(f"{source}: no built-in profile named {name!r}")

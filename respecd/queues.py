@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import asyncio
 from collections import deque
+from collections.abc import Callable
 from typing import Generic, TypeVar
 
 T = TypeVar("T")
@@ -25,6 +26,7 @@ class DropOldestQueue(Generic[T]):
         self.put_count = 0
         self._items: deque[T] = deque()
         self._waiters: deque[asyncio.Future[None]] = deque()
+        self.taps: list[Callable[[T], None]] = []  # observers (recorder, watchdog) called on every put
 
     def __len__(self) -> int:
         return len(self._items)
@@ -38,6 +40,8 @@ class DropOldestQueue(Generic[T]):
             self.dropped += 1
         self._items.append(item)
         self._wake_one()
+        for tap in self.taps:
+            tap(item)
         return not dropped
 
     def get_nowait(self) -> T:

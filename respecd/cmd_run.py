@@ -1,0 +1,123 @@
+"""``respecd [--config FILE] ...``: run the daemon (live), or ``--replay LOG`` a recorded session."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import signal
+from typing import Any
+
+import structlog
+
+from respecd.config import DEFAULT_PROFILE, load_profile
+from respecd.errors import ConfigError
+
+log = structlog.get_logger(__name__)
+
+POLICIES = ("learn", "exploit", "static", "heuristic")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--config",
+        default=DEFAULT_PROFILE,
+        metavar="FILE",
+        help=f"profile YAML (default: the embedded {DEFAULT_PROFILE}, a simulated rover)",
+    )
+    parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: run until SIGTERM)")
+    parser.add_argument(
+        "--log-format",
+        choices=("json", "console", "auto"),
+        default="auto",
+        help="log format (auto: JSON lines when stdout is not a terminal)",
+    )
+    parser.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+    parser.add_argument("--seed", type=int, default=0, help="seed for the simulator and the controller (default 0)")
+    parser.add_argument("--policy", choices=POLICIES, help="override controller.policy from the profile")
+    parser.add_argument(
+        "--state-dir", metavar="DIR", help="Q-table and state (default: $STATE_DIRECTORY, else $XDG_STATE_HOME/respecd)"
+    )
+    parser.add_argument("--record", metavar="PATH", help="record the session to this MCAP file")
+    parser.add_argument("--replay", metavar="LOG", help="replay a recorded MCAP session through the pipeline")
+    parser.add_argument(
+        "--speed",
+        default="1",
+        choices=("1", "2", "max"),
+        help="replay speed: real time, twice, or as fast as possible in lockstep (deterministic)",
+    )
+    parser.add_argument("--report", metavar="OUT.json", help="replay: write a report (JSON + PNG timeline)")
+
+
+def main(args: argparse.Namespace) -> int:
+    from respecd.logs import configure_logging
+
+    fmt = configure_logging(args.log_format, args.log_level)
+    if args.replay:
+        from respecd.record.replay import run_replay
+
+        return run_replay(args)
+    profile = load_profile(args.config)
+    return asyncio.run(run_live(profile, args, console=fmt == "console"))
+
+
+def status_printer(console: bool) -> Any:
+    if console:
+
+        def sink(fields: dict[str, Any], line: str) -> None:
+            print(line, flush=True)
+    else:
+
+        def sink(fields: dict[str, Any], line: str) -> None:
+            log.info("status", **fields)
+
+    return sink
+
+
+def make_recorder(profile: Any, path: str | None, clock: Any) -> Any:
+    """The MCAP recorder when asked for on the command line or in the profile."""
+    if path is None and not profile.recording.enabled:
+        return None
+    from respecd.record.recorder import Recorder
+
+    config = profile.recording
+    if path is not None:
+        config = config.model_copy(update={"enabled": True, "path": path})
+    return Recorder(config, profile, clock)
+
+
+async def run_live(profile: Any, args: argparse.Namespace, console: bool) -> int:
+    from respecd.clock import MonotonicClock
+    from respecd.control.persist import resolve_state_dir
+    from respecd.daemon import Daemon
+    from respecd.drivers.base import DriverContext
+    from respecd.sdnotify import Notifier
+
+    clock = MonotonicClock()
+    try:
+        state_dir = resolve_state_dir(args.state_dir)
+    except OSError as err:
+        raise ConfigError(f"--state-dir: cannot use {args.state_dir!r}: {err}") from err
+    context = DriverContext(seed=args.seed, simulation=getattr(profile, "simulation", None))
+    recorder = make_recorder(profile, args.record, clock)
+    if recorder is not None:
+        recorder.start()
+    daemon = Daemon(
+        profile,
+        clock,
+        context,
+        policy=args.policy,
+        state_dir=state_dir,
+        taps=[recorder] if recorder is not None else [],
+        status_sink=status_printer(console),
+        notifier=Notifier(),
+    )
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    try:
+        await daemon.run(duration=args.duration, stop=stop)
+    finally:
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            loop.remove_signal_handler(sig)
+    return 0

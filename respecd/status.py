@@ -1,0 +1,94 @@
+"""The once-per-second status line: what each sensor is asked and really does, sync health,
+drops, detections, contributions and the controller's action.
+
+``snapshot`` gathers plain fields (logged as JSON under systemd); ``format_line`` renders
+them for a person at a terminal and for systemd's STATUS=.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from respecd.drivers.base import Driver
+from respecd.messages import Decision, Percept, SensorConfig, SyncStats
+
+MODALITY_ABBREV = {"rgb": "rgb", "thermal": "th", "radar": "rad", "depth": "dep", "imu": "imu"}
+
+
+def describe_setting(config: SensorConfig) -> str:
+    if not config.enabled:
+        return "off"
+    if config.resolution is not None:
+        return f"{config.resolution[0]}x{config.resolution[1]}"
+    if config.mode is not None:
+        return config.mode
+    return "-"
+
+
+def sensor_fields(driver: Driver) -> dict[str, Any]:
+    health = driver.health
+    return {
+        "setting": describe_setting(driver.applied),
+        "rate_hz": round(driver.applied.rate_hz, 1),
+        "measured_hz": round(health.meter.rate_hz, 1),
+        "frames": health.frames,
+        "errors": health.errors,
+        "paused": health.paused,
+        "last_error": health.last_error,
+    }
+
+
+def snapshot(
+    t: float,
+    drivers: Mapping[str, Driver],
+    sync: SyncStats,
+    drops: Mapping[str, int],
+    percept: Percept | None,
+    decision: Decision | None,
+    action_name: str | None = None,
+) -> dict[str, Any]:
+    fields: dict[str, Any] = {
+        "t": round(t, 1),
+        "sensors": {name: sensor_fields(d) for name, d in drivers.items()},
+        "sync": {
+            "rate_hz": round(sync.rate_hz, 1),
+            "health": sync.health.value,
+            "jitter_ms": round(sync.jitter_ms, 2),
+            "stale": round(sync.stale_ratio, 3),
+        },
+        "drops": dict(drops),
+    }
+    if percept is not None:
+        fields["detections"] = len(percept.detections)
+        fields["conf_agg"] = round(percept.conf_agg, 3)
+        fields["latency_ms"] = round(percept.latency * 1000, 1)
+        if percept.contributions:
+            fields["contributions"] = {k: round(v, 3) for k, v in percept.contributions.items() if k in MODALITY_ABBREV}
+    if decision is not None:
+        fields["action"] = action_name if action_name is not None else decision.action
+        fields["reward"] = round(decision.reward, 3)
+        fields["epsilon"] = round(decision.epsilon, 3)
+    return fields
+
+
+def format_line(fields: Mapping[str, Any], modalities: Mapping[str, str]) -> str:
+    parts = [f"t={fields['t']:.0f}s"]
+    for name, s in fields["sensors"].items():
+        label = MODALITY_ABBREV.get(modalities.get(name, ""), name)
+        state = " PAUSED" if s["paused"] else ""
+        errors = f" err={s['errors']}" if s["errors"] else ""
+        parts.append(f"{label} {s['setting']} {s['rate_hz']:g}/{s['measured_hz']:.1f}Hz{state}{errors}")
+    sync = fields["sync"]
+    parts.append(f"sync {sync['rate_hz']:g}Hz {sync['health']} j={sync['jitter_ms']:.1f}ms stale={sync['stale']:.0%}")
+    parts.append("drops " + " ".join(f"{k}={v}" for k, v in fields["drops"].items()))
+    if "detections" in fields:
+        parts.append(f"det={fields['detections']} conf={fields['conf_agg']:.2f} {fields['latency_ms']:.0f}ms")
+    if "contributions" in fields:
+        contrib = " ".join(
+            f"{MODALITY_ABBREV[k]}={v:.2f}" for k, v in fields["contributions"].items() if k in MODALITY_ABBREV
+        )
+        parts.append(f"contrib {contrib}")
+    if "action" in fields:
+        parts.append(f"action {fields['action']} r={fields['reward']:+.2f}")
+    return " | ".join(parts)

@@ -1,0 +1,110 @@
+"""Keep stages alive: restart what crashes, with exponential backoff and a rate limit.
+
+"Not ready, retry later" (``DriverUnavailableError``) is logged once when it starts and
+once when the device is back, not on every retry; any other failure is logged with its
+traceback because it is a bug or a broken device.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections import deque
+from collections.abc import Awaitable, Callable
+from dataclasses import dataclass
+
+import structlog
+
+from respecd.clock import Clock, MonotonicClock
+from respecd.drivers.base import Driver
+from respecd.errors import DriverUnavailableError
+from respecd.messages import Frame
+
+log = structlog.get_logger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class Backoff:
+    """Exponential backoff: ``initial_s`` doubling up to ``max_s``; reset after ``stable_s`` of health."""
+
+    initial_s: float = 0.5
+    max_s: float = 30.0
+    stable_s: float = 30.0
+    max_restarts: int = 10  # within ``window_s``; beyond it the delay stays at ``max_s``
+    window_s: float = 300.0
+
+    def delay(self, attempt: int, recent_restarts: int) -> float:
+        if recent_restarts >= self.max_restarts:
+            return self.max_s
+        return min(self.initial_s * (2 ** max(attempt - 1, 0)), self.max_s)
+
+
+async def supervise(
+    name: str,
+    run_once: Callable[[], Awaitable[None]],
+    *,
+    backoff: Backoff = Backoff(),
+    clock: Clock | None = None,
+    on_restart: Callable[[BaseException], None] | None = None,
+) -> None:
+    """Run ``run_once`` forever; when it raises (or returns), wait and run it again."""
+    wall = clock or MonotonicClock()
+    restarts: deque[float] = deque()
+    attempt = 0
+    unavailable_logged = False
+    while True:
+        started = wall.now()
+        try:
+            await run_once()
+            error: BaseException = RuntimeError("stage returned")
+        except asyncio.CancelledError:
+            raise
+        except DriverUnavailableError as err:
+            error = err
+            if not unavailable_logged:
+                log.warning("unavailable", stage=name, error=str(err))
+                unavailable_logged = True
+        except Exception as err:  # supervisor boundary: log with traceback, then restart
+            error = err
+            log.exception("stage_crashed", stage=name)
+        else:
+            log.warning("stage_returned", stage=name)
+        now = wall.now()
+        attempt = 1 if now - started > backoff.stable_s else attempt + 1
+        restarts.append(now)
+        while restarts and restarts[0] < now - backoff.window_s:
+            restarts.popleft()
+        if on_restart is not None:
+            on_restart(error)
+        delay = backoff.delay(attempt, len(restarts))
+        log.info("stage_restart_scheduled", stage=name, delay_s=round(delay, 2), attempt=attempt)
+        await asyncio.sleep(delay)
+        if unavailable_logged and not isinstance(error, DriverUnavailableError):
+            unavailable_logged = False
+
+
+def driver_runner(driver: Driver, sink: Callable[[Frame], None]) -> Callable[[], Awaitable[None]]:
+    """One life of a driver: start, stream frames into ``sink``, always stop on the way out."""
+
+    async def run_once() -> None:
+        try:
+            await driver.start()
+            log.info("driver_started", sensor=driver.name, driver=driver.key)
+            async for frame in driver.frames():
+                driver.health.frame(frame.t)
+                sink(frame)
+        except BaseException as err:
+            if not isinstance(err, asyncio.CancelledError):
+                driver.health.error(err)
+                driver.health.restarts += 1
+            raise
+        finally:
+            await _stop_quietly(driver)
+
+    return run_once
+
+
+async def _stop_quietly(driver: Driver) -> None:
+    try:
+        await asyncio.wait_for(driver.stop(), timeout=2.0)
+    except Exception:  # a driver that cannot stop cleanly must not block the others
+        log.exception("driver_stop_failed", sensor=driver.name)
