@@ -1,12 +1,56 @@
-"""Profile section ``recording:``."""
+"""Profile section ``recording:``: where the MCAP log goes, how it is chunked, rotated and
+compressed, and which channels it carries.
+
+Small chunks bound what a power cut can lose (a log is readable up to its last complete
+chunk); rotation bounds the size of any one file so a long run never becomes one huge log.
+"""
 
 from __future__ import annotations
+
+from typing import Literal
 
 from pydantic import Field
 
 from respecd.drivers.base import StrictModel
 
+Channel = Literal["frames", "radar_raw", "percepts", "decisions", "configs", "sync"]
+ALL_CHANNELS: tuple[Channel, ...] = ("frames", "radar_raw", "percepts", "decisions", "configs", "sync")
+
 
 class RecordingConfig(StrictModel):
     enabled: bool = Field(False, description="Record the session to MCAP.")
-    path: str = Field("respecd-{time}.mcap", description="Output path; {time} becomes the start time.")
+    path: str = Field(
+        "respecd-{time}.mcap",
+        description=(
+            "Output path; {time} becomes the UTC start time (YYYYmmddTHHMMSS), {index} the rotation segment "
+            "(without {index}, segments after the first get -001, -002, ... before the suffix)."
+        ),
+    )
+    chunk_size_kib: int = Field(
+        256, ge=16, le=65536, description="MCAP chunk size (KiB): a power cut loses at most the chunk being filled."
+    )
+    flush_s: float = Field(
+        2.0, gt=0, le=600, description="Close the open chunk at least this often (s of session time), bounding loss."
+    )
+    compression: Literal["zstd", "lz4", "none"] = Field("zstd", description="Chunk compression.")
+    rotate_mib: float = Field(
+        512.0, gt=0, le=1 << 20, description="Start a new file once the current one reaches this size (MiB)."
+    )
+    rotate_s: float = Field(
+        0.0, ge=0, description="Start a new file after this many seconds of session time (0: no time rotation)."
+    )
+    channels: list[Channel] = Field(
+        list(ALL_CHANNELS),
+        description="What to record: sensor frames, raw radar UART bytes, percepts, decisions, applied configs, sync.",
+    )
+    jpeg_quality: int = Field(90, ge=10, le=100, description="JPEG quality for RGB frames (CompressedImage).")
+    rgb_format: Literal["jpeg", "png"] = Field(
+        "jpeg", description="RGB encoding: jpeg (small, lossy) or png (lossless, ~5x larger, slower)."
+    )
+    depth_format: Literal["raw", "png"] = Field(
+        "png", description="16-bit thermal/depth encoding: raw (RawImage mono16) or png (CompressedImage, lossless)."
+    )
+    queue_size: int = Field(
+        256, ge=8, le=65536, description="Messages waiting for the writer thread before the oldest is dropped."
+    )
+

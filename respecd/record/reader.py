@@ -1,0 +1,222 @@
+"""Open a session log for replay and ``log info``: validate it, read its metadata, channels
+and statistics, and stream its messages — also from a file cut short by a power loss.
+
+A cleanly finished log has a summary at its end and is described from it without reading
+the data. A cut log (no footer) is scanned sequentially up to its last complete record;
+``truncated`` is then True and callers warn once. Bad input raises ``InputError`` naming
+the file and what was expected.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+import zlib
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, Any
+
+import structlog
+from mcap.exceptions import McapError
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
+
+from respecd.errors import InputError
+from respecd.messages import Frame, Modality
+from respecd.record import codec
+
+log = structlog.get_logger(__name__)
+
+MAGIC = b"\x89MCAP0\r\n"
+
+
+class _Truncated(Exception):
+    """The file ended inside a record."""
+
+
+class _StrictFile:
+    """A reader that refuses short reads, so a record cut mid-way is noticed, not half-parsed."""
+
+    def __init__(self, f: IO[bytes]) -> None:
+        self._f = f
+
+    def read(self, n: int = -1) -> bytes:
+        data = self._f.read(n)
+        if n > 0 and 0 < len(data) < n:
+            raise _Truncated
+        return data
+
+
+_CUT = (_Truncated, McapError, struct.error, zlib.error, ValueError, EOFError, MemoryError)
+
+
+@dataclass
+class ChannelInfo:
+    topic: str
+    schema: str
+    metadata: dict[str, str]
+    count: int = 0
+
+
+@dataclass
+class SessionLog:
+    """What a log holds; messages are streamed on demand, never all loaded at once."""
+
+    path: Path
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    channels: dict[str, ChannelInfo] = field(default_factory=dict)
+    start_ns: int = 0
+    end_ns: int = 0
+    message_count: int = 0
+    truncated: bool = False
+    size: int = 0
+
+    @property
+    def duration_s(self) -> float:
+        return max(0.0, (self.end_ns - self.start_ns) / 1e9)
+
+    @property
+    def sensors(self) -> dict[str, Modality]:
+        """Sensor name -> modality, from the sensor channels' metadata."""
+        return {
+            c.metadata["sensor"]: c.metadata["modality"]  # type: ignore[misc]
+            for c in self.channels.values()
+            if c.topic == f"/sensors/{c.metadata.get('sensor')}"
+        }
+
+    def profile_dict(self) -> dict[str, Any] | None:
+        """The profile the session ran with, as a plain dict (None when not recorded)."""
+        entry = self.metadata.get("respecd.profile")
+        return json.loads(entry["json"]) if entry and "json" in entry else None
+
+    def messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, str, int, bytes]]:
+        """(topic, schema name, log time ns, payload) in file order, up to a cut if any."""
+        wanted = set(topics) if topics is not None else None
+        with open(self.path, "rb") as f:
+            yield from _iter_messages(f, wanted)
+
+    def frames(self, sensor: str) -> Iterator[Frame]:
+        """The sensor's logged frames in order; radar frames get their raw UART bytes back."""
+        topic, raw = f"/sensors/{sensor}", f"/sensors/{sensor}/raw"
+        modality = self.sensors.get(sensor, "rgb")
+        pending: Frame | None = None
+        for t, schema, ns, data in self.messages([topic, raw]):
+            if t == topic:
+                if pending is not None:
+                    yield pending
+                pending = codec.decode_frame(schema, data, modality, ns)
+            elif pending is not None:
+                msg = json.loads(data)
+                if int((msg.get("respecd") or {}).get("seq", -1)) == pending.seq:
+                    pending.meta["raw"] = codec.b64decode(msg["data"])
+                    yield pending
+                    pending = None
+        if pending is not None:
+            yield pending
+
+    def json_messages(self, topic: str) -> Iterator[dict[str, Any]]:
+        for _, _, _, data in self.messages([topic]):
+            yield json.loads(data)
+
+
+def _iter_messages(f: IO[bytes], wanted: set[str] | None) -> Iterator[tuple[str, str, int, bytes]]:
+    schemas: dict[int, str] = {}
+    topics: dict[int, tuple[str, str]] = {}  # channel id -> (topic, schema name)
+    records = StreamReader(_StrictFile(f), record_size_limit=1 << 30).records  # type: ignore[arg-type]
+    while True:
+        try:
+            record = next(records)
+        except StopIteration:
+            return
+        except _CUT:
+            return  # a cut: everything before it has been served
+        if isinstance(record, Schema):
+            schemas[record.id] = record.name
+        elif isinstance(record, Channel):
+            topics[record.id] = (record.topic, schemas.get(record.schema_id, ""))
+        elif isinstance(record, Message):
+            topic, schema = topics.get(record.channel_id, ("", ""))
+            if wanted is None or topic in wanted:
+                yield topic, schema, record.log_time, record.data
+
+
+def open_log(path: str | Path) -> SessionLog:
+    """Validate and describe a log; raise InputError for missing, empty or non-MCAP files."""
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{p}: no such file (expected an MCAP session log written by respecd --record)")
+    if not p.is_file():
+        raise InputError(f"{p}: not a regular file (expected an MCAP session log)")
+    size = p.stat().st_size
+    if size == 0:
+        raise InputError(f"{p}: empty file (0 bytes), expected an MCAP session log")
+    with open(p, "rb") as f:
+        head = f.read(len(MAGIC))
+    if head != MAGIC:
+        raise InputError(f"{p}: not an MCAP file (byte 0: {head[:8]!r}, expected the MCAP magic {MAGIC!r})")
+    session = SessionLog(path=p, size=size)
+    if not _from_summary(session):
+        _scan(session)
+    if session.message_count == 0 and not session.channels:
+        cut = " (the file was cut before its first complete chunk)" if session.truncated else ""
+        raise InputError(f"{p}: MCAP log holds no messages{cut}")
+    return session
+
+
+def _from_summary(session: SessionLog) -> bool:
+    """Fill ``session`` from the summary section of a finished log; False if there is none."""
+    try:
+        with open(session.path, "rb") as f:
+            reader = SeekingReader(f)
+            summary = reader.get_summary()
+            if summary is None or summary.statistics is None:
+                return False
+            session.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
+    except _CUT:
+        return False
+    stats = summary.statistics
+    for cid, ch in summary.channels.items():
+        schema = summary.schemas.get(ch.schema_id)
+        session.channels[ch.topic] = ChannelInfo(
+            ch.topic, schema.name if schema else "", dict(ch.metadata), stats.channel_message_counts.get(cid, 0)
+        )
+    session.start_ns, session.end_ns = stats.message_start_time, stats.message_end_time
+    session.message_count = stats.message_count
+    return True
+
+
+def _scan(session: SessionLog) -> None:
+    """Read a log without a usable summary record by record, up to its cut."""
+    schemas: dict[int, str] = {}
+    by_id: dict[int, ChannelInfo] = {}
+    with open(session.path, "rb") as f:
+        records = StreamReader(_StrictFile(f), record_size_limit=1 << 30).records  # type: ignore[arg-type]
+        while True:
+            try:
+                record = next(records)
+            except StopIteration:
+                break
+            except _CUT:
+                session.truncated = True
+                break
+            if isinstance(record, Schema):
+                schemas[record.id] = record.name
+            elif isinstance(record, Channel) and record.id not in by_id:
+                by_id[record.id] = ChannelInfo(record.topic, schemas.get(record.schema_id, ""), dict(record.metadata))
+                session.channels[record.topic] = by_id[record.id]
+            elif isinstance(record, Metadata):
+                session.metadata[record.name] = dict(record.metadata)
+            elif isinstance(record, Message) and record.channel_id in by_id:
+                _count(session, by_id[record.channel_id], record.log_time)
+            elif isinstance(record, Footer):
+                break
+
+
+def _count(session: SessionLog, channel: ChannelInfo, log_time: int) -> None:
+    channel.count += 1
+    session.message_count += 1
+    if session.message_count == 1 or log_time < session.start_ns:
+        session.start_ns = log_time
+    session.end_ns = max(session.end_ns, log_time)

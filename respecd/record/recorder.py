@@ -1,0 +1,187 @@
+"""Record a live session to MCAP without ever blocking the event loop.
+
+The daemon calls the ``on_*`` taps from the loop; each tap only appends the (immutable)
+message to a bounded deque. A worker thread encodes (JPEG/PNG, JSON) and writes. When the
+writer falls behind, the oldest message is dropped and counted (``dropped``, shown in the
+status line): a recorder must never slow the robot down.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+from collections import deque
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from respecd.clock import Clock
+from respecd.messages import Bundle, Decision, Frame, Percept, SensorConfig
+from respecd.record import codec
+from respecd.record.config import RecordingConfig
+from respecd.record.writer import SegmentWriter, session_metadata
+
+log = structlog.get_logger(__name__)
+
+CLOSE_TIMEOUT_S = 10.0  # SIGTERM budget for draining the queue and writing the summary
+
+TOPIC_PERCEPT = "/respecd/percept"
+TOPIC_DECISION = "/respecd/decision"
+TOPIC_CONFIG = "/respecd/config"
+TOPIC_SYNC = "/respecd/sync"
+
+
+def sensor_topic(sensor: str) -> str:
+    return f"/sensors/{sensor}"
+
+
+def raw_topic(sensor: str) -> str:
+    return f"/sensors/{sensor}/raw"
+
+
+class Recorder:
+    """Taps for the daemon; encoding and file I/O in one worker thread."""
+
+    def __init__(self, config: RecordingConfig, profile: Any, clock: Clock) -> None:
+        self.config = config
+        self.profile = profile
+        self.clock = clock
+        self.channels = frozenset(config.channels)
+        self.dropped = 0
+        self.errors = 0
+        self.cpu_s = 0.0  # worker thread CPU time, for the overhead benchmark
+        self._formats = codec.ImageFormats(config.rgb_format, config.jpeg_quality, config.depth_format)
+        self._queue: deque[tuple[str, str, Any]] = deque()
+        self._cond = threading.Condition()
+        self._closing = False
+        self._thread: threading.Thread | None = None
+        self._segments: SegmentWriter | None = None
+        self._epoch_ns = 0
+        self._t0 = 0.0
+
+    @property
+    def paths(self) -> list[Path]:
+        return list(self._segments.paths) if self._segments else []
+
+    @property
+    def written(self) -> int:
+        return self._segments.messages if self._segments else 0
+
+    def start(self) -> Path:
+        """Open the first segment (profile as metadata) and start the writer thread."""
+        started = datetime.now(timezone.utc)
+        self._t0 = self.clock.now()
+        self._epoch_ns = time.time_ns()
+        meta = session_metadata(self.profile, started, self._t0, self._epoch_ns)
+        self._segments = SegmentWriter(self.config, meta, started)
+        path = self._segments.open(self._t0)
+        # non-daemon: interpreter exit waits for finish(), so the summary is always written
+        self._thread = threading.Thread(target=self._run, name="respecd-recorder")
+        self._thread.start()
+        log.info("record.start", path=str(path), channels=sorted(self.channels))
+        return path
+
+    # -- taps, called on the event loop: O(1), never block ------------------------------
+    def on_frame(self, sensor_name: str, frame: Frame) -> None:
+        if "frames" in self.channels:
+            self._put("frame", sensor_name, frame)
+        raw = frame.meta.get("raw")
+        if "radar_raw" in self.channels and isinstance(raw, (bytes, bytearray)):
+            self._put("raw", sensor_name, frame)
+
+    def on_bundle(self, bundle: Bundle) -> None:
+        if "sync" in self.channels:
+            self._put("sync", "", bundle)
+
+    def on_percept(self, percept: Percept) -> None:
+        if "percepts" in self.channels:
+            self._put("percept", "", percept)
+
+    def on_decision(self, decision: Decision) -> None:
+        if "decisions" in self.channels:
+            self._put("decision", "", decision)
+
+    def on_config(self, sensor_name: str, applied: SensorConfig) -> None:
+        if "configs" in self.channels:
+            self._put("config", sensor_name, (self.clock.now(), applied))
+
+    def _put(self, kind: str, name: str, item: Any) -> None:
+        if self._thread is None or self._closing:
+            return
+        with self._cond:
+            if len(self._queue) >= self.config.queue_size:
+                self._queue.popleft()
+                self.dropped += 1
+            self._queue.append((kind, name, item))
+            self._cond.notify()
+
+    async def close(self) -> None:
+        """Drain what is queued, finish the file (summary + footer); safe to call twice."""
+        if self._thread is None:
+            return
+        with self._cond:
+            self._closing = True
+            self._cond.notify()
+        thread, self._thread = self._thread, None
+        await asyncio.to_thread(thread.join, CLOSE_TIMEOUT_S)
+        if thread.is_alive():
+            log.error("record.close_timeout", pending=len(self._queue))
+        log.info("record.closed", paths=[str(p) for p in self.paths], messages=self.written, dropped=self.dropped)
+
+    # -- worker thread -------------------------------------------------------------------
+    def _run(self) -> None:
+        assert self._segments is not None
+        cpu0 = time.thread_time()
+        try:
+            while True:
+                with self._cond:
+                    while not self._queue and not self._closing:
+                        self._cond.wait()
+                    if not self._queue:
+                        break
+                    kind, name, item = self._queue.popleft()
+                try:
+                    self._write(kind, name, item)
+                except Exception as err:  # noqa: BLE001 - thread boundary: one bad message must not end the log
+                    self.errors += 1
+                    log.warning("record.write_failed", kind=kind, sensor=name or None, error=str(err), exc_info=True)
+                self.cpu_s = time.thread_time() - cpu0
+        finally:
+            self._segments.finish()
+            self.cpu_s = time.thread_time() - cpu0
+
+    def _log_ns(self, t: float) -> int:
+        return self._epoch_ns + max(0, round((t - self._t0) * 1e9))
+
+    def _write(self, kind: str, name: str, item: Any) -> None:
+        assert self._segments is not None
+        if kind == "frame":
+            frame: Frame = item
+            ns = self._log_ns(frame.t)
+            schema, payload = codec.encode_frame(frame, name, ns, self._formats)
+            meta = {"sensor": name, "modality": frame.modality}
+            self._segments.write(sensor_topic(name), schema, meta, ns, payload, frame.t)
+        elif kind == "raw":
+            ns = self._log_ns(item.t)
+            payload = codec.dumps({"timestamp": codec.stamp(ns), "frame_id": name, "data": bytes(item.meta["raw"]),
+                                   "respecd": {"t": item.t, "seq": item.seq}})
+            meta = {"sensor": name, "modality": item.modality, "format": "ti-mmwave-uart"}
+            self._segments.write(raw_topic(name), "respecd.RawBytes", meta, ns, payload, item.t)
+        else:
+            t = item[0] if kind == "config" else item.t
+            payload, schema, topic = self._encode_own(kind, name, item)
+            self._segments.write(topic, schema, {}, self._log_ns(t), payload, t)
+
+    @staticmethod
+    def _encode_own(kind: str, name: str, item: Any) -> tuple[bytes, str, str]:
+        if kind == "percept":
+            return codec.encode_percept(item), "respecd.Percept", TOPIC_PERCEPT
+        if kind == "decision":
+            return codec.encode_decision(item), "respecd.Decision", TOPIC_DECISION
+        if kind == "sync":
+            return codec.encode_bundle(item), "respecd.Sync", TOPIC_SYNC
+        t, applied = item
+        return codec.encode_config(name, t, applied), "respecd.SensorConfig", TOPIC_CONFIG
