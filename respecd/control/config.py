@@ -1,17 +1,179 @@
-"""Profile section ``controller:``."""
+"""Profile section ``controller:``.
+
+Every weight and threshold of the ReSPEC controller lives here so that a profile, not the
+code, decides how the robot trades detection quality for power and latency. Thresholds are
+pairs ``[low, high]``: a value below ``low`` is bin 0, below ``high`` bin 1, else bin 2.
+"""
 
 from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
-from respecd.drivers.base import StrictModel
+from respecd.drivers.base import MAX_RATE_HZ, MIN_RATE_HZ, StrictModel
+from respecd.messages import RadarMode, Resolution
 
 Policy = Literal["learn", "exploit", "static", "heuristic"]
+ActionMode = Literal["moves", "product"]
+Factor = Literal["illumination", "motion", "radar_density", "load", "sync", "confidence"]
+ControlledModality = Literal["rgb", "thermal", "radar", "depth"]
+
+ALL_FACTORS: tuple[Factor, ...] = ("illumination", "motion", "radar_density", "load", "sync", "confidence")
+
+
+class Thresholds(StrictModel):
+    """Bin edges of the six state factors (value < low: bin 0; < high: bin 1; else bin 2)."""
+
+    illumination: tuple[float, float] = Field(
+        (0.25, 0.5), description="Mean RGB luminance, 0..1 (0 black, 1 white): dark / dim / bright."
+    )
+    motion_image: tuple[float, float] = Field(
+        (0.02, 0.08),
+        description="Mean absolute luminance change between consecutive frames, 0..1: still / slow / fast.",
+    )
+    motion_imu_rad_s: tuple[float, float] = Field(
+        (0.1, 0.5), description="Mean gyroscope rate norm (rad/s) when an IMU is present: still / slow / fast."
+    )
+    radar_points: tuple[float, float] = Field(
+        (4.0, 20.0), description="Mean radar points per frame: sparse / medium / dense."
+    )
+    load: tuple[float, float] = Field(
+        (0.5, 0.85),
+        description="System load 0..1, the max of CPU share, GPU share and latency / latency_budget_s: "
+        "low / medium / high.",
+    )
+    sync: tuple[float, float] = Field(
+        (0.5, 1.5), description="Mean synchronizer health over the window, good=0 fair=1 poor=2: good / fair / poor."
+    )
+    confidence: tuple[float, float] = Field(
+        (0.3, 0.6), description="Mean ConfAgg over the window (tau_l, tau_h): low / medium / high."
+    )
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Thresholds:
+        for name in type(self).model_fields:
+            low, high = getattr(self, name)
+            if low > high:
+                raise ValueError(f"{name}: low threshold {low:g} exceeds high threshold {high:g}")
+        return self
+
+
+class RewardWeights(StrictModel):
+    """r = alpha*clip(dConfAgg, -kappa, kappa) - beta*P - gamma*L - delta*[switch]."""
+
+    alpha: float = Field(4.0, ge=0, le=1000, description="Weight of the ConfAgg change (quality gain).")
+    kappa: float = Field(0.25, gt=0, le=1, description="Clip of the ConfAgg change per decision.")
+    beta: float = Field(0.05, ge=0, le=1000, description="Weight of power, per watt.")
+    gamma: float = Field(1.0, ge=0, le=1000, description="Weight of latency, per second of mean perception latency.")
+    delta: float = Field(0.05, ge=0, le=1000, description="Penalty of a configuration switch (the sensors re-arm).")
+    confidence_level: float = Field(
+        0.0,
+        ge=0,
+        le=1000,
+        description="Weight of the ConfAgg level itself (0 = the paper's reward, which rewards only its change).",
+    )
+
+
+class Learning(StrictModel):
+    """Watkins Q-learning hyper-parameters."""
+
+    learning_rate: float = Field(0.2, gt=0, le=1, description="Step size of the Q update.")
+    discount: float = Field(0.8, ge=0, lt=1, description="Discount of the next state's best value.")
+    epsilon_start: float = Field(0.5, ge=0, le=1, description="Exploration probability at the first step.")
+    epsilon_min: float = Field(0.05, ge=0, le=1, description="Floor the decay stops at.")
+    epsilon_decay: float = Field(0.995, gt=0, le=1, description="Factor applied to epsilon after each learning step.")
+    epsilon_exploit: float = Field(0.0, ge=0, le=1, description="Exploration in exploit mode (0 = purely greedy).")
+    init: Literal["zero", "optimistic"] = Field(
+        "optimistic", description="Initial Q-values: zero, or optimistic (tries every action before settling)."
+    )
+    optimistic_value: float = Field(1.0, ge=0, le=1000, description="Initial Q-value with init 'optimistic'.")
+
+    @model_validator(mode="after")
+    def _epsilon_order(self) -> Learning:
+        if self.epsilon_min > self.epsilon_start:
+            raise ValueError("epsilon_min must not exceed epsilon_start")
+        return self
+
+
+class ActionSpaceConfig(StrictModel):
+    """The settings each controlled modality can take (cheapest first)."""
+
+    mode: ActionMode = Field(
+        "moves",
+        description="moves: keep, or raise/lower one sensor's rate or setting (small, learns online); "
+        "product: every action a full configuration (grows multiplicatively).",
+    )
+    modalities: tuple[ControlledModality, ...] = Field(
+        ("rgb", "thermal", "radar", "depth"), description="Modalities the controller re-configures (when present)."
+    )
+    rate_levels_hz: tuple[float, ...] = Field(
+        (1.0, 5.0, 10.0, 15.0, 30.0),
+        min_length=1,
+        description="Sampling-rate levels (Hz), clamped per sensor to its capabilities and the sync cap; floor 1 Hz.",
+    )
+    rgb_resolutions: tuple[Resolution, ...] = Field(
+        ((640, 360), (960, 540), (1280, 720)), min_length=1, description="RGB resolutions (paper), cheapest first."
+    )
+    thermal_resolutions: tuple[Resolution, ...] = Field(
+        ((160, 120), (320, 240)), min_length=1, description="Thermal resolutions (paper), cheapest first."
+    )
+    radar_modes: tuple[RadarMode, ...] = Field(
+        ("velocity", "range"), min_length=1, description="Radar chirp preferences the agent may pick."
+    )
+    depth_resolutions: tuple[Resolution, ...] = Field(
+        (), description="Depth resolutions; empty keeps the sensor's configured resolution (rate moves only)."
+    )
+    max_actions: int = Field(4096, ge=1, le=1_000_000, description="Refuse a product space larger than this.")
+
+    @model_validator(mode="after")
+    def _rates_in_range(self) -> ActionSpaceConfig:
+        bad = [r for r in self.rate_levels_hz if not MIN_RATE_HZ <= r <= MAX_RATE_HZ]
+        if bad:
+            raise ValueError(f"rate levels must lie in {MIN_RATE_HZ:g}..{MAX_RATE_HZ:g} Hz, got {bad}")
+        return self
 
 
 class ControllerConfig(StrictModel):
     enabled: bool = Field(True, description="Run the controller task.")
     policy: Policy = Field("learn", description="learn (online Q-learning), exploit (frozen table), static, heuristic.")
     decision_period_s: float = Field(1.0, gt=0, le=60, description="Seconds between decisions.")
+    window_s: float = Field(
+        1.0, ge=0.25, le=10, description="Sliding window (s) the state factors are averaged over (paper: 0.5-1 s)."
+    )
+    min_dwell_s: float = Field(
+        2.0, ge=0, le=600, description="Minimum seconds between two configuration switches (sensors are not thrashed)."
+    )
+    apply_timeout_s: float = Field(
+        5.0, gt=0, le=120, description="Timeout (s) of one driver's apply (the radar restarts its chirp)."
+    )
+    contribution: Literal["dominant", "none"] = Field(
+        "dominant", description="How contribution scores enter the state: the dominant modality, or not at all."
+    )
+    factors: tuple[Factor, ...] = Field(
+        ALL_FACTORS, min_length=1, description="State factors used (default: the paper's six)."
+    )
+    latency_budget_s: float = Field(
+        0.2, gt=0, le=10, description="Perception latency (s) that counts as full load in the load factor."
+    )
+    system_probe: bool = Field(
+        True,
+        description="Read CPU/GPU load and power rails (off: load from perception latency only, deterministic replay).",
+    )
+    seed: int = Field(0, ge=0, description="Seed of the exploration random generator.")
+    save_every: int = Field(
+        30, ge=1, le=100_000, description="Save the Q-table every N learning updates (and on stop)."
+    )
+    table_file: str = Field(
+        "", description="Q-table file name in the state directory; empty: qtable-<profile name>.npz."
+    )
+    thresholds: Thresholds = Field(Thresholds(), description="Bin edges of the state factors.")
+    reward: RewardWeights = Field(RewardWeights(), description="Reward weights.")
+    learning: Learning = Field(Learning(), description="Q-learning hyper-parameters.")
+    actions: ActionSpaceConfig = Field(ActionSpaceConfig(), description="Action space.")
+
+    @model_validator(mode="after")
+    def _unique_factors(self) -> ControllerConfig:
+        if len(set(self.factors)) != len(self.factors):
+            raise ValueError("factors must not repeat")
+        return self

@@ -1,0 +1,148 @@
+"""The decision step, without asyncio: observation in, ``Decision`` out.
+
+``Controller.step(observation, applied)`` does, in order: bin the state; compute the reward
+of the previous action (ConfAgg change, power, latency, switch); in ``learn`` mode apply
+the Watkins update to the previous (state, action); choose the next action (ε-greedy,
+greedy in ``exploit``, or a baseline's target); hold it if the minimum dwell time since the
+last switch has not passed. It is deterministic for a given seed and sequence of
+observations, so policy training (issue #7) and replay can drive it in a plain loop.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from typing import Any
+
+from respecd.control.actions import ActionSpace, Position, build_slots
+from respecd.control.baselines import heuristic_position, static_position
+from respecd.control.config import ControllerConfig
+from respecd.control.qlearning import QTable
+from respecd.control.reward import reward_terms, sensor_power
+from respecd.control.state import Observation, StateSpace
+from respecd.drivers.base import Capabilities, SensorPower
+from respecd.messages import Decision, SensorConfig
+
+LEARNING_POLICIES = ("learn", "exploit")
+
+
+class Controller:
+    """State, reward, Q-table and action choice for one run (pure, seedable)."""
+
+    def __init__(
+        self,
+        config: ControllerConfig,
+        space: ActionSpace,
+        states: StateSpace,
+        powers: Mapping[str, SensorPower] | None = None,
+        position: Position | None = None,
+    ) -> None:
+        self.config = config
+        self.policy = config.policy
+        self.space = space
+        self.states = states
+        self.powers = dict(powers or {})
+        self.position: Position = position if position is not None else space.maximum()
+        self.table: QTable | None = None
+        if self.policy in LEARNING_POLICIES:
+            self.table = QTable(states.size, space.n, config.learning, config.seed)
+        self._prev_state: int | None = None
+        self._prev_action = 0
+        self._prev_conf: float | None = None
+        self._switched = False
+        self._last_switch_t = -math.inf
+        self._model_cache: tuple[Position, float] | None = None
+
+    @classmethod
+    def from_profile(
+        cls, config: ControllerConfig, profile: Any, capabilities: Mapping[str, Capabilities] | None = None
+    ) -> Controller:
+        """Build the spaces from the profile's sensors (and the drivers' capabilities)."""
+        slots = build_slots(config.actions, profile.sensors, capabilities, profile.sync.max_rate_hz)
+        space = ActionSpace(slots, config.actions.mode, config.actions.max_actions)
+        modalities: list[str] = []
+        for slot in slots:
+            if slot.modality not in modalities:
+                modalities.append(slot.modality)
+        contributions = modalities if config.contribution == "dominant" else []
+        states = StateSpace(config.factors, config.thresholds, contributions)
+        powers = {s.name: s.power for s in profile.sensors}
+        return cls(config, space, states, powers)
+
+    @property
+    def epsilon(self) -> float:
+        if self.policy == "learn" and self.table is not None:
+            return self.table.epsilon
+        return self.config.learning.epsilon_exploit if self.policy == "exploit" else 0.0
+
+    def layout(self) -> dict[str, Any]:
+        """The state/action layout a saved table must match (and that ``policy show`` prints)."""
+        return {
+            "states": self.states.fingerprint_data(),
+            "actions": {"space": self.space.fingerprint_data(), "names": self.space.descriptions()},
+        }
+
+    def describe_action(self, action: int) -> str:
+        if self.policy in LEARNING_POLICIES:
+            return self.space.describe(action)
+        return self.space.describe_position(self.space.position_of(action))
+
+    def step(self, obs: Observation, applied: Mapping[str, SensorConfig] | None = None) -> Decision:
+        """One decision. ``applied``: what each sensor (by name) really runs now."""
+        if applied:
+            self.position = self._resync(applied)
+        bins = self.states.bins(obs)
+        state = self.states.index(bins)
+        power = obs.power_w if obs.power_w is not None else self._model_power(applied)
+        terms = reward_terms(self.config.reward, self._prev_conf, obs.conf_agg, power, obs.latency_s, self._switched)
+        reward = terms["reward"]
+        if self.policy == "learn" and self.table is not None and self._prev_state is not None:
+            terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state)
+        action, target = self._choose(state, bins)
+        if target != self.position and obs.t - self._last_switch_t < self.config.min_dwell_s:
+            action, target = self.space.hold_action(self.position), self.position  # dwell: keep sensors settled
+            terms["held"] = 1.0
+        self._switched = target != self.position
+        if self._switched:
+            self._last_switch_t = obs.t
+        self.position = target
+        self._prev_state, self._prev_action, self._prev_conf = state, action, obs.conf_agg
+        q_values = tuple(self.table.q[state].tolist()) if self.table is not None else ()
+        return Decision(
+            t=obs.t,
+            state=bins,
+            action=action,
+            reward=reward,
+            epsilon=self.epsilon,
+            q_values=q_values,
+            configs=self.space.requests(target),
+            terms=terms,
+        )
+
+    def _choose(self, state: int, bins: tuple[int, ...]) -> tuple[int, Position]:
+        if self.policy == "static":
+            target = static_position(self.space)
+            return self.space.config_id(target), target
+        if self.policy == "heuristic":
+            target = heuristic_position(self.space, self.states.names(bins))
+            return self.space.config_id(target), target
+        assert self.table is not None
+        action = self.table.choose(state, self.epsilon)
+        return action, self.space.apply(self.position, action)
+
+    def _resync(self, applied: Mapping[str, SensorConfig]) -> Position:
+        """Follow what the drivers really run (a failed or clamped apply moves us back)."""
+        cells = list(self.position)
+        for i, slot in enumerate(self.space.slots):
+            if slot.name in applied:
+                cells[i] = slot.nearest(applied[slot.name])
+        return tuple(cells)
+
+    def _model_power(self, applied: Mapping[str, SensorConfig] | None) -> float:
+        if applied:
+            return sensor_power(applied.items(), self.powers)
+        if self._model_cache is None or self._model_cache[0] != self.position:
+            names = (slot.name for slot in self.space.slots)
+            watts = sensor_power(zip(names, self.space.requests(self.position), strict=True), self.powers)
+            self._model_cache = (self.position, watts)
+        return self._model_cache[1]

@@ -1,0 +1,152 @@
+"""The Q-table on disk: where it lives, how it is written, and what happens when it is bad.
+
+Format (version 1): an ``.npz`` holding ``q`` (float64, states × actions), ``visits``
+(int64, same shape) and ``meta`` (UTF-8 JSON as uint8): format name, version, the
+fingerprint of the state and action spaces, their readable layout (factor bins, action
+names — enough for ``respecd policy show`` without the profile), update count, ε, profile.
+
+Writes are atomic: a temp file in the same directory, fsync, rename over the old file,
+fsync of the directory — a crash leaves the old table or the new one, never half of one.
+A corrupt file, another version, or a table for a different state/action space is renamed
+aside (``NAME.corrupt-YYYYmmddTHHMMSS`` / ``.mismatch-...``) with a warning, and learning
+starts fresh: a bad table must never stop the robot.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import structlog
+
+from respecd.control.qlearning import QTable
+from respecd.errors import InputError
+
+log = structlog.get_logger(__name__)
+
+FORMAT = "respecd-qtable"
+VERSION = 1
+
+
+def resolve_state_dir(cli_value: str | None) -> Path:
+    """``--state-dir``, else ``$STATE_DIRECTORY`` (systemd StateDirectory=), else
+    ``$XDG_STATE_HOME/respecd``, else ``~/.local/state/respecd``."""
+    if cli_value:
+        return Path(cli_value).expanduser()
+    systemd = os.environ.get("STATE_DIRECTORY")
+    if systemd:
+        return Path(systemd.split(":")[0])  # systemd lists several dirs separated by ':'
+    xdg = os.environ.get("XDG_STATE_HOME")
+    base = Path(xdg) if xdg else Path.home() / ".local" / "state"
+    return base / "respecd"
+
+
+def table_path(state_dir: Path, file_name: str, profile_name: str) -> Path:
+    if not file_name:
+        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in profile_name) or "default"
+        file_name = f"qtable-{safe}.npz"
+    return state_dir / file_name
+
+
+def fingerprint(layout: dict[str, Any]) -> str:
+    """Short hash of the state and action layout a table was learned for."""
+    canonical = json.dumps(layout, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(canonical.encode()).hexdigest()[:16]
+
+
+def save_table(path: Path, table: QTable, layout: dict[str, Any], info: dict[str, Any]) -> None:
+    """Write atomically (temp + fsync + rename + directory fsync)."""
+    meta = {
+        "format": FORMAT,
+        "version": VERSION,
+        "fingerprint": fingerprint(layout),
+        "layout": layout,
+        "updates": table.updates,
+        "epsilon": table.epsilon,
+        "saved_unix": time.time(),
+        **info,
+    }
+    buffer = io.BytesIO()
+    meta_bytes = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez(buffer, q=table.q, visits=table.visits, meta=meta_bytes)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(buffer.getbuffer())
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    dir_fd = os.open(path.parent, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)
+
+
+def read_table(path: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
+    """(meta, q, visits) of a table file; InputError says what is wrong with it."""
+    try:
+        data = np.load(path, allow_pickle=False)
+    except FileNotFoundError as err:
+        raise InputError(f"{path}: no such file") from err
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+        raise InputError(f"{path}: not a readable .npz Q-table ({err})") from err
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise InputError(f"{path}: a single .npy array, not a respecd .npz Q-table")
+    with data:
+        if not {"q", "visits", "meta"} <= set(data.files):
+            raise InputError(f"{path}: not a respecd Q-table (arrays q, visits, meta expected)")
+        try:
+            q, visits, raw = data["q"], data["visits"], data["meta"]
+        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
+            raise InputError(f"{path}: damaged array data ({err})") from err
+    try:
+        meta = json.loads(raw.tobytes().decode())
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise InputError(f"{path}: meta is not JSON ({err})") from err
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise InputError(f"{path}: meta.format is not {FORMAT!r}")
+    if meta.get("version") != VERSION:
+        raise InputError(f"{path}: meta.version is {meta.get('version')!r}, expected {VERSION}")
+    if q.ndim != 2 or q.shape != visits.shape or q.dtype != np.float64 or not np.isfinite(q).all():
+        raise InputError(f"{path}: q must be a finite float64 matrix with visits of the same shape, got {q.shape}")
+    return meta, q, visits
+
+
+def load_into(path: Path, table: QTable, layout: dict[str, Any]) -> bool:
+    """Restore ``table`` from ``path`` if it matches; set a bad file aside. True if loaded."""
+    if not path.exists():
+        return False
+    try:
+        meta, q, visits = read_table(path)
+    except InputError as err:
+        _set_aside(path, "corrupt", str(err))
+        return False
+    if meta.get("fingerprint") != fingerprint(layout) or q.shape != table.shape:
+        _set_aside(path, "mismatch", f"table is for another state/action space (fingerprint {meta.get('fingerprint')})")
+        return False
+    table.restore(q, visits, int(meta.get("updates", 0)), float(meta.get("epsilon", table.epsilon)))
+    log.info("qtable_loaded", path=str(path), updates=table.updates, epsilon=round(table.epsilon, 4))
+    return True
+
+
+def _set_aside(path: Path, reason: str, detail: str) -> None:
+    aside = path.with_name(f"{path.name}.{reason}-{time.strftime('%Y%m%dT%H%M%S')}")
+    try:
+        os.replace(path, aside)
+    except OSError as err:
+        log.warning("qtable_set_aside_failed", path=str(path), error=str(err))
+        return
+    log.warning("qtable_set_aside", path=str(path), moved_to=str(aside), reason=reason, detail=detail)

@@ -1,0 +1,63 @@
+"""Tabular Watkins Q-learning with ε-greedy exploration: pure numpy, seedable.
+
+    Q(s, a) ← Q(s, a) + lr · (r + discount · max_a' Q(s', a') − Q(s, a))
+
+ε decays geometrically after every update down to ``epsilon_min``. Greedy ties are broken
+at random (with the seeded generator), so a zero- or optimistically-initialised table does
+not always pick action 0. ``visits`` counts updates per (state, action) for ``policy show``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from respecd.control.config import Learning
+
+
+class QTable:
+    """Q-values (n_states × n_actions, float64) plus visit counts and the ε schedule."""
+
+    def __init__(self, n_states: int, n_actions: int, learning: Learning, seed: int = 0) -> None:
+        self.learning = learning
+        init = learning.optimistic_value if learning.init == "optimistic" else 0.0
+        self.q = np.full((n_states, n_actions), init, dtype=np.float64)
+        self.visits = np.zeros((n_states, n_actions), dtype=np.int64)
+        self.updates = 0
+        self.epsilon = learning.epsilon_start
+        self.rng = np.random.default_rng(seed)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.q.shape  # type: ignore[return-value]
+
+    def update(self, state: int, action: int, reward: float, next_state: int) -> float:
+        """One Watkins update; returns the TD error."""
+        row = self.q[state]
+        target = reward + self.learning.discount * float(self.q[next_state].max())
+        error = target - float(row[action])
+        row[action] += self.learning.learning_rate * error
+        self.visits[state, action] += 1
+        self.updates += 1
+        self.epsilon = max(self.learning.epsilon_min, self.epsilon * self.learning.epsilon_decay)
+        return error
+
+    def greedy(self, state: int) -> int:
+        row = self.q[state]
+        best = row.max()
+        ties = np.flatnonzero(row == best)
+        if ties.size == 1:
+            return int(ties[0])
+        return int(ties[self.rng.integers(ties.size)])
+
+    def choose(self, state: int, epsilon: float) -> int:
+        """ε-greedy: a uniformly random action with probability ``epsilon``."""
+        if epsilon > 0.0 and self.rng.random() < epsilon:
+            return int(self.rng.integers(self.q.shape[1]))
+        return self.greedy(state)
+
+    def restore(self, q: np.ndarray, visits: np.ndarray, updates: int, epsilon: float) -> None:
+        """Load saved values (shapes must match; checked by the caller)."""
+        self.q[...] = q
+        self.visits[...] = visits
+        self.updates = int(updates)
+        self.epsilon = float(epsilon)
