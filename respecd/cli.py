@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "check-config": ("respecd.cmd_config", "validate profiles; print FILE:LINE: problems, exit 2 if any"),
     "schema": ("respecd.cmd_schema", "print the profile JSON Schema (for yaml-language-server)"),
     "bench": ("respecd.cmd_bench", "run a benchmark, print figures, write JSON"),
+    "log": ("respecd.cmd_log", "inspect a recorded MCAP session log: `log info LOG`"),
 }
 
 

@@ -1,0 +1,118 @@
+"""``respecd log info LOG``: a quick look at a session log — channels, duration, message
+counts, sensors and the profile it ran with — without replaying it."""
+
+from __future__ import annotations
+
+import argparse
+import json
+from datetime import datetime, timezone
+from typing import Any
+
+from respecd.errors import InputError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="log_command", metavar="ACTION")
+    info = sub.add_parser("info", help="channels, duration, message counts, sensors, profile")
+    info.add_argument("log", metavar="LOG", help="an MCAP session log (respecd --record)")
+    info.add_argument("--json", action="store_true", help="print the description as JSON")
+    info.add_argument("--profile", action="store_true", help="also print the recorded profile (JSON)")
+
+
+def main(args: argparse.Namespace) -> int:
+    if getattr(args, "log_command", None) != "info":
+        raise InputError("log: expected an action, e.g. `respecd log info LOG`")
+    from respecd.record.reader import open_log
+
+    session = open_log(args.log)
+    description = describe(session)
+    if args.json:
+        print(json.dumps(description, indent=2))
+    else:
+        print(render(description))
+    if args.profile and not args.json:
+        print(json.dumps(session.profile_dict(), indent=2))
+    return 0
+
+
+def describe(session: Any) -> dict[str, Any]:
+    """Plain fields of a ``SessionLog`` (what ``--json`` prints)."""
+    duration = session.duration_s
+    profile = session.profile_dict()
+    meta = session.metadata.get("respecd.session", {})
+    channels = [
+        {
+            "topic": c.topic,
+            "schema": c.schema,
+            "messages": c.count,
+            "rate_hz": _rate(c.count, duration),
+        }
+        for c in sorted(session.channels.values(), key=lambda c: c.topic)
+    ]
+    sensors = {}
+    for name, modality in sorted(session.sensors.items()):
+        channel = session.channels[f"/sensors/{name}"]
+        sensors[name] = {
+            "modality": modality,
+            "frames": channel.count,
+            "rate_hz": _rate(channel.count, duration),
+            "encoding": channel.schema,
+            "raw_channel": f"/sensors/{name}/raw" in session.channels,
+        }
+    return {
+        "file": str(session.path),
+        "bytes": session.size,
+        "truncated": session.truncated,
+        "start_utc": _utc(session.start_ns),
+        "duration_s": round(duration, 3),
+        "messages": session.message_count,
+        "channels": channels,
+        "sensors": sensors,
+        "profile": profile.get("name") if profile else None,
+        "segment": meta.get("segment"),
+        "respecd_version": meta.get("respecd_version"),
+        "ground_truth": _has_ground_truth(session),
+    }
+
+
+def _rate(count: int, duration: float) -> float | None:
+    """Messages per second: intervals over the span between the first and last message."""
+    return round((count - 1) / duration, 2) if duration > 0 and count > 1 else None
+
+
+def _utc(ns: int) -> str | None:
+    if ns <= 0:
+        return None
+    return datetime.fromtimestamp(ns / 1e9, tz=timezone.utc).isoformat(timespec="milliseconds")
+
+
+def _has_ground_truth(session: Any) -> bool:
+    """True when the first RGB frame carries ``meta["gt"]`` (simulated sessions do)."""
+    rgb = [n for n, m in session.sensors.items() if m == "rgb"]
+    if not rgb:
+        return False
+    for frame in session.frames(rgb[0]):
+        return "gt" in frame.meta
+    return False
+
+
+def render(d: dict[str, Any]) -> str:
+    cut = "  TRUNCATED: no summary; readable up to the last complete chunk" if d["truncated"] else ""
+    lines = [
+        f"file:      {d['file']} ({d['bytes'] / 2**20:.1f} MiB){cut}",
+        f"profile:   {d['profile'] or '(not recorded)'}   respecd {d['respecd_version'] or '?'}"
+        + (f"   segment {d['segment']}" if d["segment"] not in (None, "0") else ""),
+        f"start:     {d['start_utc'] or '-'}",
+        f"duration:  {d['duration_s']:.2f} s",
+        f"messages:  {d['messages']} in {len(d['channels'])} channels"
+        + ("   ground truth: yes" if d["ground_truth"] else ""),
+        "sensors:",
+    ]
+    for name, s in d["sensors"].items():
+        raw = " + raw bytes" if s["raw_channel"] else ""
+        lines.append(f"  {name:<12} {s['modality']:<8} {s['frames']:>7} frames {s['rate_hz'] or 0:>6.1f} Hz  "
+                     f"{s['encoding']}{raw}")
+    lines.append("channels:")
+    for c in d["channels"]:
+        lines.append(f"  {c['topic']:<28} {c['schema']:<26} {c['messages']:>7} msgs {c['rate_hz'] or 0:>6.1f} Hz")
+    return "\n".join(lines)
