@@ -98,20 +98,13 @@ def save_table(path: Path, table: QTable, layout: dict[str, Any], info: dict[str
 def read_table(path: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
     """(meta, q, visits) of a table file; InputError says what is wrong with it."""
     try:
-        data = np.load(path, allow_pickle=False)
+        # open the file ourselves: np.load leaks its handle when the zip directory is torn
+        with path.open("rb") as f:
+            q, visits, raw = _arrays(path, np.load(f, allow_pickle=False))
     except FileNotFoundError as err:
         raise InputError(f"{path}: no such file") from err
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
         raise InputError(f"{path}: not a readable .npz Q-table ({err})") from err
-    if not isinstance(data, np.lib.npyio.NpzFile):
-        raise InputError(f"{path}: a single .npy array, not a respecd .npz Q-table")
-    with data:
-        if not {"q", "visits", "meta"} <= set(data.files):
-            raise InputError(f"{path}: not a respecd Q-table (arrays q, visits, meta expected)")
-        try:
-            q, visits, raw = data["q"], data["visits"], data["meta"]
-        except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
-            raise InputError(f"{path}: damaged array data ({err})") from err
     try:
         meta = json.loads(raw.tobytes().decode())
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
@@ -123,6 +116,15 @@ def read_table(path: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
     if q.ndim != 2 or q.shape != visits.shape or q.dtype != np.float64 or not np.isfinite(q).all():
         raise InputError(f"{path}: q must be a finite float64 matrix with visits of the same shape, got {q.shape}")
     return meta, q, visits
+
+
+def _arrays(path: Path, data: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    if not isinstance(data, np.lib.npyio.NpzFile):
+        raise InputError(f"{path}: a single .npy array, not a respecd .npz Q-table")
+    with data:
+        if not {"q", "visits", "meta"} <= set(data.files):
+            raise InputError(f"{path}: not a respecd Q-table (arrays q, visits, meta expected)")
+        return data["q"], data["visits"], data["meta"]
 
 
 def load_into(path: Path, table: QTable, layout: dict[str, Any]) -> bool:

@@ -1,0 +1,121 @@
+"""Action space: sizes, moves, product ids, mapping to SensorConfig with clamping, baselines."""
+
+from __future__ import annotations
+
+import pytest
+
+from respecd.control.actions import ActionSpace, build_slots
+from respecd.control.baselines import heuristic_position, static_position
+from respecd.control.config import ActionSpaceConfig
+from respecd.drivers.base import Capabilities, DriverConfigBase, clamp_request
+from respecd.errors import ConfigError
+
+# the FLIR One Pro: 160x120 native (320x240 upscaled), no more than ~9 Hz (SENSORS.md §3)
+FLIR_CAPS = Capabilities("thermal", resolutions=((160, 120), (320, 240)), max_rate_hz=9.0, upscaled=((320, 240),))
+UVC_CAPS = Capabilities("rgb", resolutions=((1280, 720), (640, 360)), max_rate_hz=30.0)
+
+
+def _sensors() -> list[DriverConfigBase]:
+    return [
+        DriverConfigBase(driver="sim", name="cam", modality="rgb", resolution=(1280, 720)),
+        DriverConfigBase(driver="sim", name="flir", modality="thermal", resolution=(160, 120), rate_hz=9),
+        DriverConfigBase(driver="sim", name="radar", modality="radar", mode="range", rate_hz=10),
+        DriverConfigBase(driver="sim", name="imu", modality="imu"),
+    ]
+
+
+def test_moves_space_is_small_and_each_move_changes_one_knob() -> None:
+    slots = build_slots(ActionSpaceConfig(), _sensors(), sync_cap_hz=27.0)
+    space = ActionSpace(slots, "moves")
+    assert [s.name for s in slots] == ["cam", "flir", "radar"]  # the IMU is not controlled
+    assert space.n == 1 + 3 * 4
+    assert slots[0].rates == (1.0, 5.0, 10.0, 15.0, 27.0)  # the sync cap replaces 30 Hz
+    start = ((1, 2), (0, 2), (0, 2))
+    assert space.apply(start, 0) == start
+    assert space.describe(2) == "cam rate up"
+    assert space.apply(start, 2) == ((1, 3), (0, 2), (0, 2))
+    assert space.describe(7) == "flir setting down"
+    assert space.apply(start, 7) == start  # already the cheapest setting: a move past the end stays put
+    top = space.maximum()
+    assert space.apply(top, space.descriptions().index("radar rate up")) == top
+
+
+def test_product_space_ids_round_trip_and_requests() -> None:
+    config = ActionSpaceConfig(mode="product", rate_levels_hz=(1.0, 10.0))
+    space = ActionSpace(build_slots(config, _sensors()), "product")
+    assert space.n == (3 * 2) * (2 * 2) * (2 * 2)
+    for action in range(space.n):
+        assert space.config_id(space.apply(space.maximum(), action)) == action
+    cam, flir, radar = space.requests(space.position_of(space.n - 1))
+    assert (cam.resolution, cam.rate_hz, cam.enabled) == ((1280, 720), 10.0, True)
+    assert (flir.resolution, flir.rate_hz) == ((320, 240), 10.0)
+    assert (radar.mode, radar.resolution) == ("range", None)
+    cam0, _, radar0 = space.requests(space.position_of(0))
+    assert (cam0.resolution, cam0.rate_hz, radar0.mode) == ((640, 360), 1.0, "velocity")
+
+
+def test_product_space_over_the_cap_is_a_config_error() -> None:
+    slots = build_slots(ActionSpaceConfig(), _sensors())
+    with pytest.raises(ConfigError, match="max_actions=100"):
+        ActionSpace(slots, "product", max_actions=100)
+
+
+def test_mapping_clamps_to_capabilities_like_the_driver_would() -> None:
+    caps = {"flir": FLIR_CAPS, "cam": UVC_CAPS}
+    slots = build_slots(ActionSpaceConfig(), _sensors(), caps, sync_cap_hz=30.0)
+    cam, flir = slots[0], slots[1]
+    assert flir.rates == (1.0, 5.0, 9.0)  # 10, 15, 30 Hz collapse onto the FLIR's 9 Hz
+    assert cam.settings == ((640, 360), (1280, 720))  # 960x540 is not a mode this camera has
+    space = ActionSpace(slots, "moves")
+    for request, name in zip(space.requests(space.maximum()), ("cam", "flir", "radar"), strict=True):
+        assert clamp_request(caps.get(name, Capabilities(request.modality, modes=("velocity", "range"))),
+                             request).rate_hz == request.rate_hz
+    # without capabilities, the driver's clamp is what reports the change
+    blind = build_slots(ActionSpaceConfig(), _sensors())[1]
+    applied = clamp_request(FLIR_CAPS, blind.request(1, len(blind.rates) - 1))
+    assert applied.rate_hz == 9.0 and any("capped at 9" in n for n in applied.notes)
+    assert any("upscaled" in n for n in applied.notes)
+    assert blind.nearest(applied) == (1, 2)  # 9 Hz maps back to the 10 Hz rung
+
+
+def test_rate_floor_is_one_hz() -> None:
+    slots = build_slots(ActionSpaceConfig(rate_levels_hz=(1.0, 2.0)), _sensors(),
+                        {"cam": Capabilities("rgb", resolutions=((640, 360),), min_rate_hz=5.0, max_rate_hz=15.0)})
+    assert slots[0].rates == (5.0,)
+    assert all(min(s.rates) >= 1.0 for s in slots)
+
+
+def test_static_baseline_is_every_sensor_at_maximum() -> None:
+    space = ActionSpace(build_slots(ActionSpaceConfig(), _sensors(), {"flir": FLIR_CAPS}), "moves")
+    cam, flir, radar = space.requests(static_position(space))
+    assert (cam.resolution, cam.rate_hz) == ((1280, 720), 30.0)
+    assert (flir.resolution, flir.rate_hz) == ((320, 240), 9.0)
+    assert (radar.mode, radar.rate_hz) == ("range", 30.0)
+
+
+def _heuristic(space: ActionSpace, **names: str) -> dict:
+    base = {"illumination": "dim", "motion": "slow", "radar_density": "medium", "load": "low",
+            "sync": "good", "confidence": "medium", "dominant": "none"}
+    requests = space.requests(heuristic_position(space, {**base, **names}))
+    return {s.name: r for s, r in zip(space.slots, requests, strict=True)}
+
+
+def test_heuristic_rules() -> None:
+    space = ActionSpace(build_slots(ActionSpaceConfig(), _sensors()), "moves")
+    dark = _heuristic(space, illumination="dark")
+    bright = _heuristic(space, illumination="bright")
+    assert dark["flir"].resolution == (320, 240) and dark["flir"].rate_hz > bright["flir"].rate_hz
+    assert dark["cam"].resolution == (640, 360) and dark["cam"].rate_hz < bright["cam"].rate_hz
+    assert bright["cam"].resolution == (1280, 720)
+    fast, still = _heuristic(space, motion="fast"), _heuristic(space, motion="still")
+    assert all(fast[n].rate_hz == 30.0 for n in fast)
+    assert all(still[n].rate_hz <= 5.0 for n in still)
+    assert _heuristic(space, radar_density="dense")["radar"].mode == "range"
+    assert _heuristic(space, motion="fast")["radar"].mode == "velocity"
+    low_conf = _heuristic(space, confidence="low", dominant="radar")["radar"]
+    assert low_conf.rate_hz == 30.0
+    loaded = _heuristic(space, load="high")
+    assert loaded["cam"].resolution == (640, 360)
+    assert all(loaded[n].rate_hz < _heuristic(space)[n].rate_hz for n in loaded)
+    assert all(r.rate_hz >= 1.0 for r in _heuristic(space, illumination="dark", motion="still",
+                                                     load="high").values())

@@ -1,0 +1,138 @@
+"""Reward terms, the Watkins update, epsilon decay, and learn mode on a toy problem."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from respecd.control.actions import ActionSpace, Slot
+from respecd.control.config import ControllerConfig, Learning, RewardWeights, Thresholds
+from respecd.control.controller import Controller
+from respecd.control.qlearning import QTable
+from respecd.control.reward import reward_terms, sensor_power
+from respecd.control.state import Observation, StateSpace
+from respecd.drivers.base import SensorPower
+from respecd.messages import SensorConfig
+
+
+def test_reward_terms_hand_computed() -> None:
+    w = RewardWeights(alpha=2.0, kappa=0.1, beta=0.5, gamma=3.0, delta=0.25)
+    terms = reward_terms(w, conf_prev=0.2, conf_now=0.25, power_w=4.0, latency_s=0.1, switched=True)
+    assert terms["quality"] == pytest.approx(2.0 * 0.05)
+    assert terms["power"] == pytest.approx(-2.0)
+    assert terms["latency"] == pytest.approx(-0.3)
+    assert terms["switch"] == pytest.approx(-0.25)
+    assert terms["reward"] == pytest.approx(0.1 - 2.0 - 0.3 - 0.25)
+    clipped = reward_terms(w, conf_prev=0.9, conf_now=0.1, power_w=0.0, latency_s=0.0, switched=False)
+    assert clipped["quality"] == pytest.approx(-0.2)  # clip(-0.8, -0.1, 0.1) * 2
+    assert clipped["switch"] == 0.0
+    first = reward_terms(w, conf_prev=None, conf_now=0.7, power_w=0.0, latency_s=0.0, switched=False)
+    assert first["quality"] == 0.0 and first["conf_agg"] == 0.7
+
+
+def test_power_model_per_resolution_and_rate() -> None:
+    models = {
+        "cam": SensorPower(static_w=0.5, per_hz_w={"1280x720": 0.05, "default": 0.02}),
+        "radar": SensorPower(static_w=1.0, per_hz_w={"range": 0.01}),
+    }
+    configs = [
+        ("cam", SensorConfig("rgb", rate_hz=10.0, resolution=(1280, 720))),
+        ("radar", SensorConfig("radar", rate_hz=20.0, mode="range")),
+        ("unknown", SensorConfig("depth", rate_hz=30.0)),
+    ]
+    assert sensor_power(configs, models) == pytest.approx(0.5 + 0.5 + 1.0 + 0.2)
+    cheap = [("cam", SensorConfig("rgb", rate_hz=10.0, resolution=(640, 360)))]
+    assert sensor_power(cheap, models) == pytest.approx(0.5 + 0.2)
+
+
+def test_watkins_update_hand_computed() -> None:
+    table = QTable(3, 2, Learning(learning_rate=0.5, discount=0.9, init="zero"))
+    table.q[1] = [0.0, 2.0]
+    error = table.update(0, 1, reward=1.0, next_state=1)
+    # Q(0,1) = 0 + 0.5 * (1 + 0.9 * max(0, 2) - 0) = 1.4
+    assert error == pytest.approx(2.8)
+    assert table.q[0, 1] == pytest.approx(1.4)
+    table.update(0, 1, reward=-1.0, next_state=2)
+    # Q(0,1) = 1.4 + 0.5 * (-1 + 0.9 * 0 - 1.4) = 0.2
+    assert table.q[0, 1] == pytest.approx(0.2)
+    assert table.visits[0].tolist() == [0, 2] and table.updates == 2
+
+
+def test_epsilon_decays_geometrically_to_the_floor() -> None:
+    table = QTable(1, 2, Learning(epsilon_start=0.5, epsilon_decay=0.9, epsilon_min=0.2))
+    seen = []
+    for _ in range(12):
+        table.update(0, 0, 0.0, 0)
+        seen.append(table.epsilon)
+    assert seen[0] == pytest.approx(0.45)
+    assert seen[1] == pytest.approx(0.405)
+    assert seen[-1] == pytest.approx(0.2)
+    assert all(a >= b for a, b in zip(seen, seen[1:], strict=False))
+
+
+def test_greedy_breaks_ties_at_random_but_seeded() -> None:
+    picks = [QTable(1, 4, Learning(init="zero"), seed=s).greedy(0) for s in range(20)]
+    assert len(set(picks)) > 1
+    again = [QTable(1, 4, Learning(init="zero"), seed=s).greedy(0) for s in range(20)]
+    assert picks == again
+    table = QTable(1, 4, Learning(init="zero"))
+    table.q[0, 2] = 0.1
+    assert {table.choose(0, epsilon=0.0) for _ in range(20)} == {2}
+    assert len({table.choose(0, epsilon=1.0) for _ in range(200)}) == 4
+
+
+def _toy(seed: int, **learning: float) -> Controller:
+    """Two states (dark/bright) x two actions (thermal 160x120 or 320x240)."""
+    config = ControllerConfig(
+        factors=("illumination",), contribution="none", min_dwell_s=0.0, seed=seed,
+        reward=RewardWeights(alpha=0.0, confidence_level=1.0, beta=0.0, gamma=0.0, delta=0.0),
+        learning=Learning(learning_rate=0.3, discount=0.5, epsilon_start=1.0, epsilon_decay=0.99,
+                          epsilon_min=0.05, init="zero", **learning),
+    )
+    slot = Slot("flir", "thermal", ((160, 120), (320, 240)), (9.0,))
+    space = ActionSpace((slot,), "product")
+    states = StateSpace(config.factors, Thresholds(), ())
+    return Controller(config, space, states)
+
+
+def test_learn_mode_converges_on_a_two_state_toy_problem() -> None:
+    # In the dark the 320x240 thermal setting (action 1) pays; in bright light 160x120 does.
+    rng = np.random.default_rng(7)
+    controller = _toy(seed=3)
+    light = 0.1
+    conf = 0.5
+    for step in range(400):
+        decision = controller.step(Observation(t=float(step), n_percepts=1, illumination=light, conf_agg=conf))
+        best = 1 if light < 0.25 else 0
+        conf = 0.9 if decision.action == best else 0.1  # what the next window will observe
+        light = float(rng.choice([0.1, 0.8]))
+    table = controller.table
+    dark, bright = 0, 2  # illumination bins
+    assert table.q[dark].argmax() == 1 and table.q[bright].argmax() == 0
+    assert table.q[dark, 1] > table.q[dark, 0] + 0.3
+    assert table.epsilon == pytest.approx(0.05)
+    greedy = {s: table.greedy(s) for s in (dark, bright)}
+    assert greedy == {dark: 1, bright: 0}
+
+
+def test_exploit_mode_does_not_update_and_static_never_learns() -> None:
+    controller = _toy(seed=1)
+    controller.policy = "exploit"
+    before = controller.table.q.copy()
+    for step in range(20):
+        controller.step(Observation(t=float(step), n_percepts=1, illumination=0.1, conf_agg=step / 20))
+    assert np.array_equal(before, controller.table.q)
+    assert controller.epsilon == 0.0
+
+
+def test_dwell_time_holds_switches() -> None:
+    controller = _toy(seed=0)
+    controller.config = controller.config.model_copy(update={"min_dwell_s": 5.0})
+    positions, held = [], 0
+    for step in range(30):
+        decision = controller.step(Observation(t=float(step), n_percepts=1, illumination=0.5, conf_agg=0.5))
+        positions.append(controller.position)
+        held += int(decision.terms.get("held", 0))
+    switches = [t for t in range(1, 30) if positions[t] != positions[t - 1]]
+    assert held > 0
+    assert all(b - a >= 5 for a, b in zip(switches, switches[1:], strict=False))

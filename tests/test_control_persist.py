@@ -1,0 +1,118 @@
+"""Q-table persistence: state dir resolution, atomic save/load, corrupt and mismatched files."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from respecd.control.config import Learning
+from respecd.control.persist import load_into, read_table, resolve_state_dir, save_table, table_path
+from respecd.control.qlearning import QTable
+from respecd.errors import InputError
+
+LAYOUT = {"states": {"factors": ["illumination"], "bins": [["dark", "dim", "bright"]]},
+          "actions": {"space": {"mode": "moves"}, "names": ["keep", "up"]}}
+
+
+def _table() -> QTable:
+    table = QTable(3, 2, Learning(init="zero"), seed=1)
+    table.update(0, 1, 1.0, 2)
+    table.update(2, 0, -0.5, 0)
+    return table
+
+
+def test_resolve_state_dir_precedence(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    monkeypatch.setenv("STATE_DIRECTORY", f"{tmp_path}/sd:{tmp_path}/other")
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path / "xdg"))
+    assert resolve_state_dir(str(tmp_path / "cli")) == tmp_path / "cli"
+    assert resolve_state_dir(None) == tmp_path / "sd"
+    monkeypatch.delenv("STATE_DIRECTORY")
+    assert resolve_state_dir(None) == tmp_path / "xdg" / "respecd"
+    monkeypatch.delenv("XDG_STATE_HOME")
+    monkeypatch.setenv("HOME", str(tmp_path / "home"))
+    assert resolve_state_dir(None) == tmp_path / "home" / ".local" / "state" / "respecd"
+
+
+def test_table_path_is_named_after_the_profile(tmp_path: Path) -> None:
+    assert table_path(tmp_path, "", "sim rover/1") == tmp_path / "qtable-sim_rover_1.npz"
+    assert table_path(tmp_path, "mine.npz", "x") == tmp_path / "mine.npz"
+
+
+def test_save_then_load_round_trips_and_leaves_no_temp_files(tmp_path: Path) -> None:
+    path = tmp_path / "state" / "q.npz"
+    table = _table()
+    save_table(path, table, LAYOUT, {"profile": "toy"})
+    save_table(path, table, LAYOUT, {"profile": "toy"})  # overwrite in place
+    assert sorted(p.name for p in path.parent.iterdir()) == ["q.npz"]
+    meta, q, visits = read_table(path)
+    assert meta["profile"] == "toy" and meta["updates"] == 2 and meta["layout"] == LAYOUT
+    fresh = QTable(3, 2, Learning(init="zero"))
+    assert load_into(path, fresh, LAYOUT)
+    assert np.array_equal(fresh.q, table.q) and np.array_equal(fresh.visits, table.visits)
+    assert fresh.updates == 2 and fresh.epsilon == pytest.approx(table.epsilon)
+
+
+def test_a_failed_write_keeps_the_old_table(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "q.npz"
+    save_table(path, _table(), LAYOUT, {})
+    before = path.read_bytes()
+
+    def disk_full(fd: int) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "fsync", disk_full)
+    with pytest.raises(OSError):
+        save_table(path, QTable(3, 2, Learning()), LAYOUT, {})
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["q.npz"]
+
+
+def _torn(path: Path) -> None:
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+
+
+def _garbage(path: Path) -> None:
+    path.write_bytes(b"not a zip at all")
+
+
+def _bare_npy(path: Path) -> None:
+    with path.open("wb") as f:
+        np.save(f, np.zeros(3))
+
+
+def _broken_meta(path: Path) -> None:
+    with path.open("wb") as f:
+        np.savez(f, q=np.zeros((3, 2)), visits=np.zeros((3, 2)), meta=np.frombuffer(b"{broken", np.uint8))
+
+
+@pytest.mark.parametrize("damage", [_torn, _garbage, _bare_npy, _broken_meta])
+def test_corrupt_file_is_set_aside_and_learning_starts_fresh(tmp_path: Path, damage) -> None:
+    path = tmp_path / "q.npz"
+    save_table(path, _table(), LAYOUT, {})
+    damage(path)
+    fresh = QTable(3, 2, Learning(init="zero"))
+    assert not load_into(path, fresh, LAYOUT)
+    assert not path.exists()
+    aside = [p.name for p in tmp_path.iterdir()]
+    assert len(aside) == 1 and aside[0].startswith("q.npz.corrupt-")
+    assert fresh.updates == 0 and not fresh.q.any()
+    with pytest.raises(InputError, match="q.npz"):
+        read_table(tmp_path / aside[0])
+
+
+def test_mismatched_space_is_set_aside(tmp_path: Path) -> None:
+    path = tmp_path / "q.npz"
+    save_table(path, _table(), LAYOUT, {})
+    other = {**LAYOUT, "actions": {"space": {"mode": "product"}, "names": ["a", "b"]}}
+    assert not load_into(path, QTable(3, 2, Learning()), other)
+    assert [p.name.split("-")[0] for p in tmp_path.iterdir()] == ["q.npz.mismatch"]
+
+
+def test_missing_file_is_a_fresh_start(tmp_path: Path) -> None:
+    assert not load_into(tmp_path / "none.npz", QTable(1, 1, Learning()), LAYOUT)
+    with pytest.raises(InputError, match="no such file"):
+        read_table(tmp_path / "none.npz")

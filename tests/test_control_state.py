@@ -1,0 +1,136 @@
+"""State factors: bin edges, ConfAgg, index <-> names, window features from real images."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from respecd.control.config import ALL_FACTORS, Thresholds
+from respecd.control.features import FeatureExtractor, Sample, Window
+from respecd.control.state import Observation, StateSpace, bin3, conf_agg, dominant
+from respecd.messages import Bundle, Frame, Health, Percept, SyncStats
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+
+
+def _percept(t: float, frames: dict, health: Health = Health.GOOD, conf: float = 0.5) -> Percept:
+    bundle = Bundle(t, frames, SyncStats(10.0, 1.0, 0.0, health))
+    return Percept(t, (), conf, None, 0.02, bundle)
+
+
+@pytest.mark.parametrize(
+    ("value", "expected"),
+    [(0.0, 0), (0.2999, 0), (0.3, 1), (0.5999, 1), (0.6, 2), (1.0, 2), (-1.0, 0)],
+)
+def test_bin3_edges_low_inclusive_high_inclusive(value: float, expected: int) -> None:
+    assert bin3(value, (0.3, 0.6)) == expected
+
+
+def test_bin3_equal_edges_has_no_middle_bin() -> None:
+    assert [bin3(v, (0.5, 0.5)) for v in (0.49, 0.5, 0.51)] == [0, 2, 2]
+
+
+@pytest.mark.parametrize(
+    ("confidences", "expected"),
+    [([], 0.0), ([0.7], 0.7), ([0.4, 0.8], 0.6), ([0.1, 0.9, 0.5, 0.8, 0.2], (0.9 + 0.8 + 0.5) / 3)],
+)
+def test_conf_agg_top_three_mean(confidences: list[float], expected: float) -> None:
+    assert conf_agg(confidences) == pytest.approx(expected)
+
+
+def test_state_index_round_trips_every_state() -> None:
+    space = StateSpace(ALL_FACTORS, Thresholds(), ("rgb", "thermal", "radar"))
+    assert space.dims == (3, 3, 3, 3, 3, 3, 4)
+    assert space.size == 729 * 4
+    for index in (0, 1, 728, 1000, space.size - 1):
+        bins = space.unindex(index)
+        assert space.index(bins) == index
+        assert space.from_names(space.names(bins)) == bins
+    assert space.names(space.unindex(0))["illumination"] == "dark"
+    assert space.names(space.unindex(space.size - 1)) == {
+        "illumination": "bright", "motion": "fast", "radar_density": "dense", "load": "high",
+        "sync": "poor", "confidence": "high", "dominant": "radar",
+    }
+    with pytest.raises(ValueError):
+        space.unindex(space.size)
+    with pytest.raises(ValueError):
+        space.index((3, 0, 0, 0, 0, 0, 0))
+
+
+def test_bins_from_observation_uses_profile_thresholds() -> None:
+    space = StateSpace(ALL_FACTORS, Thresholds(), ("rgb", "thermal"))
+    obs = Observation(
+        t=1.0, n_percepts=5, illumination=0.1, motion_image=0.01, motion_imu=0.6, radar_points=25.0,
+        load=0.6, sync=1.6, conf_agg=0.31, contributions={"rgb": 0.1, "thermal": 0.8, "radar": 0.1},
+    )
+    assert space.names(space.bins(obs)) == {
+        "illumination": "dark", "motion": "fast", "radar_density": "dense", "load": "medium",
+        "sync": "poor", "confidence": "medium", "dominant": "thermal",
+    }
+    unknown = Observation(t=0.0)
+    assert space.names(space.bins(unknown))["illumination"] == "dim"  # unknown light is not "dark"
+    assert space.names(space.bins(unknown))["dominant"] == "none"
+
+
+def test_dominant_ignores_modalities_outside_the_state() -> None:
+    assert dominant({"depth": 0.9, "rgb": 0.1}, ("rgb", "thermal")) == "rgb"
+    assert dominant(None, ("rgb",)) == "none"
+    assert dominant({"rgb": 0.0}, ("rgb",)) == "none"
+
+
+def test_real_night_image_is_dark_and_day_image_is_not() -> None:
+    night = REAL / "llvip_pairs" / "visible" / "010005.jpg"
+    day = REAL / "tardal_ir_vis_samples" / "vi" / "ROAD_040.jpg"
+    if not night.exists() or not day.exists():
+        pytest.skip(f"shared real captures not found under {REAL}")
+    th = Thresholds()
+    samples = [FeatureExtractor().sample(_percept(0.0, {"rgb": Frame("rgb", 0.0, 0, cv2.imread(str(p)))}))
+               for p in (night, day)]
+    assert bin3(samples[0].luminance, th.illumination) == 0
+    assert bin3(samples[1].luminance, th.illumination) >= 1
+
+
+def test_frame_difference_compares_across_resolutions() -> None:
+    extractor = FeatureExtractor()
+    big = np.full((720, 1280, 3), 100, np.uint8)
+    small = np.full((360, 640, 3), 100, np.uint8)
+    first = extractor.sample(_percept(0.0, {"rgb": Frame("rgb", 0.0, 0, big)}))
+    same = extractor.sample(_percept(0.1, {"rgb": Frame("rgb", 0.1, 1, small)}))
+    repeat = extractor.sample(_percept(0.2, {"rgb": Frame("rgb", 0.1, 1, small)}))  # same frame again
+    moved = extractor.sample(_percept(0.3, {"rgb": Frame("rgb", 0.3, 2, np.full((360, 640, 3), 151, np.uint8))}))
+    assert first.frame_diff is None
+    assert same.frame_diff == pytest.approx(0.0, abs=1e-6)
+    assert repeat.frame_diff is None
+    assert moved.frame_diff == pytest.approx(51 / 255, abs=1e-3)
+
+
+def test_imu_radar_and_sync_features() -> None:
+    imu = Frame("imu", 0.0, 0, np.array([0, 0, 9.81, 0.3, 0.4, 0.0], np.float32))
+    radar = Frame("radar", 0.0, 0, np.zeros((7, 5), np.float32))
+    sample = FeatureExtractor().sample(_percept(0.0, {"imu": imu, "radar": radar}, Health.FAIR))
+    assert sample.gyro == pytest.approx(0.5)
+    assert sample.radar_points == 7.0
+    assert sample.sync_level == 1
+    assert sample.luminance is None
+
+
+def test_window_averages_prunes_and_keeps_last_scene_values() -> None:
+    window = Window(window_s=1.0, latency_budget_s=0.2)
+    window.add(Sample(t=0.2, conf_agg=0.2, latency_s=0.05, luminance=0.1, radar_points=10, sync_level=0))
+    window.add(Sample(t=0.9, conf_agg=0.6, latency_s=0.15, luminance=0.3, sync_level=2,
+                      contributions={"rgb": 0.2, "thermal": 0.8}))
+    obs = window.observe(1.0, cpu=0.3)
+    assert obs.n_percepts == 2
+    assert obs.conf_agg == pytest.approx(0.4)
+    assert obs.illumination == pytest.approx(0.2)
+    assert obs.radar_points == 10
+    assert obs.sync == pytest.approx(1.0)
+    assert obs.load == pytest.approx(0.5)  # latency 0.1 s of a 0.2 s budget beats CPU 0.3
+    later = window.observe(2.5, cpu=0.9)  # both samples aged out
+    assert later.n_percepts == 0 and later.conf_agg == 0.0
+    assert later.illumination == pytest.approx(0.2)  # last known light, not "unknown"
+    assert later.contributions == {"rgb": 0.2, "thermal": 0.8}
+    assert later.load == pytest.approx(0.9)
