@@ -250,7 +250,7 @@ class Driver(abc.ABC):
 
     @abc.abstractmethod
     def frames(self) -> AsyncIterator[Frame]:
-        """Frames as they arrive, until ``stop``."""
+        """Frames as they arrive, until ``stop``. The supervisor counts them in ``health``."""
 
     @abc.abstractmethod
     async def apply(self, request: SensorConfig) -> SensorConfig:

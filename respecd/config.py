@@ -21,6 +21,7 @@ from respecd.drivers.base import MAX_RATE_HZ, MIN_RATE_HZ, StrictModel
 from respecd.errors import ConfigError
 from respecd.perception.config import PerceptionConfig
 from respecd.record.config import RecordingConfig
+from respecd.sim.config import SimulationConfig
 
 BUILTIN_PREFIX = "builtin:"
 DEFAULT_PROFILE = "builtin:sim-rover"
@@ -80,6 +81,9 @@ def profile_model() -> type[StrictModel]:
         controller: ControllerConfig = Field(ControllerConfig(), description="Q-learning controller.")
         recording: RecordingConfig = Field(RecordingConfig(), description="MCAP recording.")
         telemetry: TelemetryConfig = Field(TelemetryConfig(), description="Status line, power rails, watchdog.")
+        simulation: SimulationConfig = Field(
+            SimulationConfig(), description="The simulated world `sim` sensors look at."
+        )
 
         @model_validator(mode="after")
         def _unique_sensor_names(self) -> Profile:
@@ -122,7 +126,7 @@ def load_profile(source: str | Path = DEFAULT_PROFILE) -> Any:
 def _read_source(source: str) -> tuple[str, str]:
     if source.startswith(BUILTIN_PREFIX):
         name = source[len(BUILTIN_PREFIX) :]
-        resource = resources.files("respecd") / "profiles" / f"{name}.yaml"
+        resource = resources.files("respecd.profiles") / f"{name}.yaml"  # a mapped package (pyproject package-dir)
         if not resource.is_file():
             raise ConfigError(f"{source}: no built-in profile named {name!r}")
         return f"<{source}>", resource.read_text(encoding="utf-8")
@@ -162,16 +166,21 @@ def _line_index(text: str) -> dict[tuple[Any, ...], int]:
 def _format_problem(label: str, lines: dict[tuple[Any, ...], int], error: Any) -> str:
     # pydantic inserts the union tag (e.g. 'sim') into the location; drop it for the YAML path
     loc = tuple(p for p in error["loc"] if not (isinstance(p, str) and p in _tags()))
+    kind = error["type"]
+    if kind in ("union_tag_invalid", "union_tag_not_found"):
+        loc = (*loc, "driver")
     line = _nearest_line(lines, loc)
     path = ".".join(str(p) for p in loc) or "(top level)"
     message = error["msg"]
-    kind = error["type"]
     if kind == "extra_forbidden":
         message = "unknown key (check the spelling; `respecd schema` lists the valid keys)"
     elif kind == "missing":
         message = "required key is missing"
     elif kind == "union_tag_invalid":
-        message = f"unknown driver {error.get('input')!r} (expected one of: {', '.join(sorted(_tags()))})"
+        tag = error.get("ctx", {}).get("tag")
+        message = f"unknown driver {tag!r} (expected one of: {', '.join(sorted(_tags()))})"
+    elif kind == "union_tag_not_found":
+        message = f"required key is missing (expected one of: {', '.join(sorted(_tags()))})"
     elif "input" in error and kind != "value_error":
         message = f"{message} (got {error['input']!r})"
     return f"{label}:{line}: {path}: {message}"

@@ -1,0 +1,116 @@
+"""Profiles: the shipped ones validate; bad ones give FILE:LINE: path: message, exit 2."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from respecd.config import json_schema, load_profile
+from respecd.errors import ConfigError
+
+REPO = Path(__file__).resolve().parents[1]
+RESPECD = [sys.executable, "-m", "respecd.cli"]
+
+BAD = """\
+name: bad
+sensors:
+  - name: rgb
+    driver: sim
+    modality: rgb
+    rate_hz: 45
+    resolutoin: [640, 360]
+  - name: thermal
+    driver: simm
+    modality: thermal
+sync:
+  max_rate_hz: "fast"
+"""
+
+
+def problems_of(tmp_path: Path, text: str) -> list[str]:
+    path = tmp_path / "profile.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_profile(path)
+    return [p.replace(str(path), "P") for p in info.value.problems]
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "configs").glob("*.yaml")), ids=lambda p: p.name)
+def test_shipped_profiles_validate(path):
+    profile = load_profile(path)
+    assert profile.sensors
+
+
+def test_embedded_default_profile_loads_from_the_package():
+    assert load_profile("builtin:sim-rover").name == "sim-rover"
+
+
+def test_every_problem_has_file_line_path_and_expectation(tmp_path):
+    assert problems_of(tmp_path, BAD) == [
+        "P:6: sensors.0.rate_hz: Input should be less than or equal to 30 (got 45)",
+        "P:7: sensors.0.resolutoin: unknown key (check the spelling; `respecd schema` lists the valid keys)",
+        "P:9: sensors.1.driver: unknown driver 'simm' (expected one of: "
+        + ", ".join(sorted(__import__("respecd.drivers").drivers.DRIVERS))
+        + ")",
+        "P:12: sync.max_rate_hz: Input should be a valid number, unable to parse string as a number (got 'fast')",
+    ]
+
+
+def test_missing_required_key(tmp_path):
+    problems = problems_of(tmp_path, "name: x\nsensors:\n  - driver: sim\n    modality: rgb\n")
+    assert problems == ["P:3: sensors.0.name: required key is missing"]
+
+
+def test_yaml_syntax_error_names_the_line(tmp_path):
+    problems = problems_of(tmp_path, "name: x\nsensors: [\n  - a: b\n")
+    assert len(problems) == 1 and problems[0].startswith("P:3: not valid YAML")
+
+
+def test_top_level_must_be_a_mapping(tmp_path):
+    assert problems_of(tmp_path, "- just a list\n")[0].startswith("P:1: profile must be a mapping")
+
+
+def test_duplicate_sensor_names(tmp_path):
+    text = "name: x\nsensors:\n" + "  - {name: cam, driver: sim, modality: rgb}\n" * 2
+    assert "sensor names must be unique, repeated: cam" in problems_of(tmp_path, text)[0]
+
+
+def test_missing_file():
+    with pytest.raises(ConfigError, match="no such file"):
+        load_profile("/nonexistent/profile.yaml")
+
+
+def test_check_config_cli_exits_2_without_traceback(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(BAD)
+    good = REPO / "configs" / "sim-rover.yaml"
+    result = subprocess.run([*RESPECD, "check-config", str(good), str(bad)], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert f"{bad}:7: sensors.0.resolutoin: unknown key" in result.stderr
+    assert "sim-rover.yaml: ok" in result.stdout
+
+
+def test_run_with_bad_profile_exits_2(tmp_path):
+    result = subprocess.run(
+        [*RESPECD, "--config", str(tmp_path / "absent.yaml")], capture_output=True, text=True, timeout=60
+    )
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "absent.yaml: no such file" in result.stderr
+
+
+def test_schema_command_prints_the_profile_schema():
+    result = subprocess.run([*RESPECD, "schema"], capture_output=True, text=True, timeout=60, check=True)
+    schema = json.loads(result.stdout)
+    assert schema["title"] == "respecd profile"
+    assert {"sensors", "sync", "perception", "controller", "recording", "telemetry"} <= set(schema["properties"])
+
+
+def test_shipped_schema_file_is_current():
+    """The profiles point yaml-language-server at docs/profile.schema.json: keep it in step."""
+    shipped = json.loads((REPO / "docs" / "profile.schema.json").read_text())
+    assert shipped == json.loads(json.dumps(json_schema())), "run: respecd schema --out docs/profile.schema.json"
