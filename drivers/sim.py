@@ -1,0 +1,235 @@
+"""Simulated sensors: one driver instance per modality, all looking at one shared, seeded world.
+
+Frames come on a fixed grid of the injected clock at the applied rate (no drift: frame k
+after a rate change is due at anchor + k / rate) and are stamped with their grid time, so
+a run on a ``ManualClock`` is deterministic. Each frame's noise comes from
+``default_rng([seed, modality, seq])``. Rendering runs inline when it is measured to be
+cheap (< 2 ms) and in the driver's own worker thread otherwise, so the event loop never
+waits on a 1280x720 render or on a scenario's background being built.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import time
+from collections.abc import AsyncIterator, Awaitable, Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
+from typing import Literal
+
+import numpy as np
+import structlog
+from pydantic import Field
+
+from respecd.clock import Clock
+from respecd.drivers.base import Capabilities, Driver, DriverConfigBase, DriverContext, clamp_request
+from respecd.errors import DriverError
+from respecd.messages import MODALITIES, Frame, SensorConfig
+from respecd.sim.camera import ground_truth
+from respecd.sim.radar_model import radar_figures
+from respecd.sim.render import render_depth, render_imu, render_radar, render_rgb, render_thermal, rgb_exposure
+from respecd.sim.state import SceneState
+from respecd.sim.world import World, make_world
+
+log = structlog.get_logger(__name__)
+
+INLINE_BUDGET_S = 0.002  # renders measured above this go to the worker thread
+_COST_SMOOTHING = 0.2  # EWMA weight of the newest render time
+
+CAPABILITIES: dict[str, Capabilities] = {
+    "rgb": Capabilities("rgb", resolutions=((1280, 720), (960, 540), (640, 360))),
+    "thermal": Capabilities("thermal", resolutions=((320, 240), (160, 120))),  # both native in the sim
+    "depth": Capabilities("depth", resolutions=((848, 480), (640, 480), (424, 240))),
+    "radar": Capabilities("radar", modes=("range", "velocity")),
+    "imu": Capabilities("imu"),
+}
+
+
+class SimConfig(DriverConfigBase):
+    driver: Literal["sim"] = Field(description="Simulated sensor looking at the profile's `simulation:` world.")
+    render_in_thread: Literal["auto", "always", "never"] = Field(
+        "auto", description="Render in a worker thread: auto = when a render is measured to take over 2 ms."
+    )
+
+
+class SimDriver(Driver):
+    """A simulated sensor that honours every setter (rate, resolution, radar mode, enable)."""
+
+    key = "sim"
+
+    def __init__(self, config: SimConfig, clock: Clock, context: DriverContext | None = None) -> None:
+        super().__init__(config, clock, context)
+        self.sim_config = config
+        self.applied = clamp_request(self.capabilities, config.initial_request())
+        self._world: World | None = None
+        self._executor: ThreadPoolExecutor | None = None
+        self._stopped = asyncio.Event()
+        self._changed = asyncio.Event()  # set by apply, so a disabled sensor wakes up
+        self._cost_s: dict[tuple, float] = {}  # measured render time per setting
+        self._segment = -1  # the scenario segment last rendered (a new one builds backgrounds)
+        self._modality_index = MODALITIES.index(self.modality)
+
+    @property
+    def capabilities(self) -> Capabilities:
+        return CAPABILITIES[self.modality]
+
+    @property
+    def world(self) -> World:
+        if self._world is None:
+            raise DriverError(f"{self.name}: start() the simulated sensor before reading frames")
+        return self._world
+
+    async def start(self) -> None:
+        if self._world is not None and not self._stopped.is_set():
+            return
+        self._world = make_world(self.context.simulation, self.context.seed)
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"sim-{self.name}")
+        self._stopped = asyncio.Event()
+        log.info("sim_start", sensor=self.name, modality=self.modality, seed=self._world.seed)
+
+    async def stop(self) -> None:
+        if self._stopped.is_set():
+            return
+        self._stopped.set()
+        if self._executor is not None:
+            self._executor.shutdown(wait=False, cancel_futures=True)  # the worker ends after its render
+            self._executor = None
+        if self._world is not None:
+            log.info("sim_stop", sensor=self.name, frames=self.health.frames)
+
+    async def apply(self, request: SensorConfig) -> SensorConfig:
+        applied = clamp_request(self.capabilities, replace(request, modality=self.modality))
+        if applied != self.applied:
+            log.info(
+                "sim_apply",
+                sensor=self.name,
+                rate_hz=applied.rate_hz,
+                resolution=applied.resolution,
+                mode=applied.mode,
+                enabled=applied.enabled,
+                notes=list(applied.notes),
+            )
+        self.applied = applied
+        self._changed.set()
+        return applied
+
+    async def frames(self) -> AsyncIterator[Frame]:
+        world = self.world
+        seq, last_t = 0, None
+        anchor, k, rate = self.clock.now(), 0, self.applied.rate_hz
+        while not self._stopped.is_set():
+            if not self.applied.enabled:
+                if await self._race(self._wait_enabled()) is None:
+                    return
+                anchor, k, rate = self.clock.now(), 0, self.applied.rate_hz
+                continue
+            if self.applied.rate_hz != rate:
+                anchor, k, rate = self._regrid(last_t, self.applied.rate_hz)
+            due = anchor + k / rate  # frame k of the current grid: no drift, the mean rate is exact
+            self._changed.clear()
+            woke = await self._race(self.clock.sleep_until(due), self._changed.wait())
+            if woke is None:
+                return
+            if woke == 1:
+                continue  # apply() changed the setting while we slept: recompute the due time
+            frame = await self._frame(world, due, seq, self.applied)
+            if frame is None:
+                return
+            yield frame  # the supervisor counts it in health
+            seq, last_t, k = seq + 1, due, k + 1
+            k = self._skip_missed(anchor, k, rate)
+
+    def _regrid(self, last_t: float | None, rate: float) -> tuple[float, int, float]:
+        """A new rate's grid: one new period after the last frame, or now if that is past."""
+        now = self.clock.now()
+        if last_t is None or last_t + 1.0 / rate < now:
+            return now, 0, rate
+        return last_t, 1, rate
+
+    def _skip_missed(self, anchor: float, k: int, rate: float) -> int:
+        """When the consumer fell a whole period behind, drop the slots it missed (counted)."""
+        behind = int((self.clock.now() - (anchor + k / rate)) * rate)
+        if behind > 0:
+            self.health.drops += behind
+            return k + behind
+        return k
+
+    async def _wait_enabled(self) -> None:
+        while not self.applied.enabled:
+            self._changed.clear()
+            await self._changed.wait()
+
+    async def _race(self, *awaitables: Awaitable[object]) -> int | None:
+        """Index of the first of ``awaitables`` to finish; None when stop came first."""
+        tasks = [asyncio.ensure_future(a) for a in awaitables]
+        stopper = asyncio.ensure_future(self._stopped.wait())
+        try:
+            await asyncio.wait([*tasks, stopper], return_when=asyncio.FIRST_COMPLETED)
+        finally:
+            for task in (*tasks, stopper):
+                if not task.done():
+                    task.cancel()
+            await asyncio.gather(*tasks, stopper, return_exceptions=True)
+        if self._stopped.is_set():
+            return None
+        return next((i for i, t in enumerate(tasks) if t.done() and not t.cancelled()), None)
+
+    async def _frame(self, world: World, t: float, seq: int, applied: SensorConfig) -> Frame | None:
+        state = world.state_at(t)
+        rng = np.random.default_rng([world.seed, self._modality_index, seq])
+        key = (applied.resolution, applied.mode, applied.rate_hz if self.modality == "radar" else None)
+        job = self._job(state, applied, rng)
+        if self._use_thread(key, state):
+            executor = self._executor
+            if executor is None:
+                return None
+            data, meta, cost = await asyncio.get_running_loop().run_in_executor(executor, _timed, job)
+        else:
+            data, meta, cost = _timed(job)
+        previous = self._cost_s.get(key, cost)
+        self._cost_s[key] = previous + _COST_SMOOTHING * (cost - previous)
+        self._segment = state.segment
+        meta.update(scenario=state.scenario, light=state.light, segment=state.segment, render_s=cost)
+        return Frame(self.modality, t, seq, data, meta)
+
+    def _use_thread(self, key: tuple, state: SceneState) -> bool:
+        mode = self.sim_config.render_in_thread
+        if mode != "auto":
+            return mode == "always"
+        if state.segment != self._segment or key not in self._cost_s:
+            return True  # a new scenario or setting builds cached backgrounds first: tens of ms
+        return self._cost_s[key] > INLINE_BUDGET_S
+
+    def _job(self, state: SceneState, applied: SensorConfig, rng: np.random.Generator) -> Callable[[], tuple]:
+        """A closure that renders this modality (pure: safe in a worker thread)."""
+        modality, res = self.modality, applied.resolution
+        sim = self.world.config
+        if modality == "rgb":
+            max_exposure = min(1.0 / applied.rate_hz, sim.max_exposure_s)
+            return lambda: (
+                render_rgb(state, res, max_exposure, rng),
+                {"gt": ground_truth(state, res), **rgb_exposure(state, res, max_exposure)},
+            )
+        if modality == "thermal":
+            return lambda: (
+                render_thermal(state, res, rng),
+                {"gt": ground_truth(state, res), "units": "cK", "kelvin_per_count": 0.01},
+            )
+        if modality == "depth":
+            return lambda: (
+                render_depth(state, res, rng),
+                {"gt": ground_truth(state, res), "units": "mm", "valid_m": (0.3, 3.0)},
+            )
+        gt_res = (sim.rgb_intrinsics.width, sim.rgb_intrinsics.height)
+        meta = {"gt": ground_truth(state, gt_res), "gt_resolution": gt_res}
+        if modality == "radar":
+            meta.update(mode=applied.mode, figures=radar_figures(applied.mode, applied.rate_hz).as_dict())
+            return lambda: (render_radar(state, applied.mode, applied.rate_hz, rng), meta)
+        meta["ego_speed"] = state.ego_speed
+        return lambda: (render_imu(state, rng), meta)
+
+
+def _timed(job: Callable[[], tuple]) -> tuple:
+    start = time.perf_counter()
+    data, meta = job()
+    return data, meta, time.perf_counter() - start

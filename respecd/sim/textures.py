@@ -1,0 +1,124 @@
+"""Cached, per-scenario images that do not change frame to frame: the room seen by each
+imager, a fabric texture, a smoke texture and a bank of sensor noise.
+
+Built once per (room, resolution) with vectorized numpy (tens of milliseconds at 1280x720,
+once per 30 s scenario), so a frame costs a copy plus the moving parts.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import cv2
+import numpy as np
+
+from respecd.sim.camera import Camera
+from respecd.sim.state import Room
+
+NOISE_STD = 32.0  # the noise bank is uint8 with mean 128 and this standard deviation
+NOISE_PAD = 64  # frames take the bank at a random offset within this margin
+DEPTH_MIN_MM, DEPTH_MAX_MM = 300, 3000  # D435i valid range as the paper uses it
+
+
+@functools.cache
+def noise_bank() -> np.ndarray:
+    """uint8 (720 + pad, 1280 + pad, 3) Gaussian noise, fixed seed, generated once (~50 ms)."""
+    rng = np.random.default_rng(0x5EED)
+    bank = rng.normal(128.0, NOISE_STD, size=(720 + NOISE_PAD, 1280 + NOISE_PAD, 3))
+    return np.clip(bank, 0, 255).astype(np.uint8)
+
+
+def noise_slice(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
+    """A (height, width, 3) view of the noise bank at a random offset (no copy)."""
+    bank = noise_bank()
+    oy = int(rng.integers(0, bank.shape[0] - height + 1))
+    ox = int(rng.integers(0, bank.shape[1] - width + 1))
+    return bank[oy : oy + height, ox : ox + width]
+
+
+def _low_freq(seed: int, height: int, width: int, cells: int = 12) -> np.ndarray:
+    """Smooth float32 noise in [-1, 1]: a tiny random grid scaled up with bicubic interpolation."""
+    small = np.random.default_rng(seed).uniform(-1, 1, size=(cells, cells)).astype(np.float32)
+    return np.clip(cv2.resize(small, (width, height), interpolation=cv2.INTER_CUBIC), -1, 1)
+
+
+def _rays(cam: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Normalized image coordinates x/z (1, W) and y/z (H, 1) of every pixel centre."""
+    xn = ((np.arange(cam.width, dtype=np.float32) + 0.5 - cam.cx) / cam.fx)[None, :]
+    yn = ((np.arange(cam.height, dtype=np.float32) + 0.5 - cam.cy) / cam.fy)[:, None]
+    return xn, yn
+
+
+def room_depth(room: Room, camera_height: float, cam: Camera) -> np.ndarray:
+    """float32 (H, W) z-depth (m) of the floor (y = camera_height) or the back wall."""
+    xn, yn = _rays(cam)
+    with np.errstate(divide="ignore"):
+        floor_z = np.where(yn > 0, camera_height / np.maximum(yn, 1e-9), np.inf)
+    z = np.minimum(floor_z, room.wall_z).astype(np.float32)  # (H, 1): a plane's z-depth depends on the row only
+    return np.broadcast_to(z, (cam.height, cam.width)).copy()
+
+
+@functools.lru_cache(maxsize=12)
+def rgb_background(room: Room, camera_height: float, cam: Camera) -> tuple[np.ndarray, float]:
+    """uint8 BGR reflectance of the room under full light, and its mean level (0..255)."""
+    xn, yn = _rays(cam)
+    z = room_depth(room, camera_height, cam)
+    on_floor = z < room.wall_z
+    wx, wy = xn * z, yn * z  # world x, y (m) of each pixel's surface point
+    tiles = ((np.floor(wx / 0.6) + np.floor(z / 0.6)) % 2) * 0.12 + 0.88  # 60 cm floor tiles
+    panels = np.where((wx % 1.2) < 0.03, 0.7, 1.0)  # wall panel seams every 1.2 m
+    skirting = np.where(wy > camera_height - 0.12, 0.6, 1.0)
+    shade = np.where(on_floor, tiles, panels * skirting)
+    shade *= 1.0 + 0.15 * _low_freq(room.texture_seed, cam.height, cam.width)
+    color = np.where(on_floor[..., None], np.array(room.floor_color, np.float32), np.array(room.wall_color, np.float32))
+    image = np.clip(color * shade[..., None], 0, 255).astype(np.uint8)
+    _posters(image, room, cam)
+    return image, float(image.mean())
+
+
+def _posters(image: np.ndarray, room: Room, cam: Camera) -> None:
+    """A few rectangles on the back wall (doors, posters, shelves): clutter for the detector."""
+    rng = np.random.default_rng(room.texture_seed + 1)
+    for _ in range(int(rng.integers(2, 6))):
+        x1, y1 = rng.uniform(-6, 5), rng.uniform(-2.0, -0.3)
+        w, h = rng.uniform(0.4, 1.5), rng.uniform(0.4, 2.0)
+        p1 = cam.project(x1, y1, room.wall_z)
+        p2 = cam.project(x1 + w, min(y1 + h, 0.4), room.wall_z)
+        color = tuple(int(c) for c in rng.integers(20, 240, size=3))
+        cv2.rectangle(image, (int(p1[0]), int(p1[1])), (int(p2[0]), int(p2[1])), color, -1)
+
+
+@functools.lru_cache(maxsize=12)
+def thermal_background(room: Room, camera_height: float, cam: Camera) -> np.ndarray:
+    """float32 (H, W) kelvin: walls at ambient, floor a little cooler, a few warm spots."""
+    z = room_depth(room, camera_height, cam)
+    temp = np.where(z < room.wall_z, room.ambient_k - 1.0, room.ambient_k).astype(np.float32)
+    temp += 0.4 * _low_freq(room.texture_seed + 2, cam.height, cam.width, cells=6)
+    vv, uu = np.mgrid[0 : cam.height, 0 : cam.width].astype(np.float32)
+    for u, v, radius, kelvin in room.warm_spots:  # radiators, lamps, screens
+        r2 = ((uu / cam.width - u) ** 2 + (vv / cam.height - v) ** 2) / (radius * radius)
+        temp += kelvin * np.exp(-r2).astype(np.float32)
+    return temp
+
+
+@functools.lru_cache(maxsize=12)
+def depth_background(room: Room, camera_height: float, cam: Camera) -> np.ndarray:
+    """float32 (H, W) z-depth (m) of the room; the renderer blanks what is out of range."""
+    return room_depth(room, camera_height, cam)
+
+
+@functools.lru_cache(maxsize=8)
+def fabric(height: int, width: int) -> np.ndarray:
+    """uint8 (H, W, 3) multiplicative cloth texture (scale 1/255): weave plus folds."""
+    vv, uu = np.mgrid[0:height, 0:width].astype(np.float32)
+    weave = 0.92 + 0.08 * np.sign(np.sin(uu * 1.3) * np.sin(vv * 1.3))
+    folds = 0.85 + 0.15 * _low_freq(7, height, width, cells=24)
+    tex = np.clip(255 * weave * folds, 0, 255).astype(np.uint8)
+    return np.repeat(tex[..., None], 3, axis=2)
+
+
+@functools.lru_cache(maxsize=8)
+def smoke_texture(height: int, width: int, color: tuple[int, int, int]) -> np.ndarray:
+    """uint8 (H, W, 3) billowing grey for the smoke occluder."""
+    billow = 0.85 + 0.15 * _low_freq(11, height, width, cells=16)
+    return np.clip(np.array(color, np.float32) * billow[..., None], 0, 255).astype(np.uint8)
