@@ -1,0 +1,301 @@
+"""TI IWR6843 mmWave radar (out-of-box demo firmware) over its two UARTs, with pyserial.
+
+CLI port (115200): the chirp cfg, line by line, each answered ``Done``. Data port (921600):
+TLV packets, read by a worker thread and parsed incrementally. The controller's action
+(range/velocity preference, frame rate) maps to a chirp-table row; switching it means
+``sensorStop``, ``flushCfg``, the full cfg, ``sensorStart``: the stream pauses meanwhile
+(``health.paused``) and the switch time is measured and reported. A lost port (unplugged
+board, read error, silent stream) is reopened with exponential backoff and reconfigured.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import os
+import time
+from collections.abc import AsyncIterator
+from dataclasses import replace
+from pathlib import Path
+from typing import Any, Literal
+
+import structlog
+from pydantic import Field, model_validator
+
+from respecd.clock import Clock
+from respecd.drivers.base import Capabilities, Driver, DriverConfigBase, DriverContext, clamp_request
+from respecd.errors import ConfigError, DriverIOError, DriverTimeoutError, DriverUnavailableError, InputError
+from respecd.messages import Frame, RadarMode, SensorConfig
+from respecd.queues import DropOldestQueue
+from respecd.radar import cfg
+from respecd.radar.chirp import ChirpProfile, lookup, max_rate_hz
+from respecd.radar.cli_port import CliPort
+from respecd.radar.data_port import DataPortReader
+from respecd.radar.parser import MmwParser, Packet, RadarPacket
+
+log = structlog.get_logger(__name__)
+
+MODES: tuple[RadarMode, ...] = ("range", "velocity")
+_RECOVERABLE = (DriverUnavailableError, DriverIOError, DriverTimeoutError, OSError)  # SerialException is an OSError
+
+
+class IWR6843Config(DriverConfigBase):
+    """Profile entry for a TI IWR6843 (ISK or AOP) running the mmWave SDK 3.x out-of-box demo."""
+
+    driver: Literal["iwr6843"] = "iwr6843"
+    modality: Literal["radar"] = Field("radar", description="Always radar.")
+    rate_hz: float = Field(10.0, ge=1, le=30, description="Initial frame rate (Hz); TI's presets run at 10.")
+    mode: RadarMode = Field("range", description="Initial preference: range- or velocity-prioritized chirp.")
+    cli_port: str = Field("/dev/respecd-radar-cli", description="CLI/config UART (udev name; ttyUSB0/ttyACM0).")
+    data_port: str = Field("/dev/respecd-radar-data", description="Data UART (udev name; ttyUSB1/ttyACM1).")
+    cli_baud: Literal[115200, 921600] = Field(115200, description="CLI port baud rate (the demo uses 115200).")
+    data_baud: Literal[921600, 115200] = Field(921600, description="Data port baud rate (the demo uses 921600).")
+    cli_timeout_s: float = Field(1.0, gt=0, le=30, description="Wait for Done per command (x4 for sensorStart).")
+    cli_retries: int = Field(2, ge=0, le=10, description="Re-sends of a command that timed out or was garbled.")
+    open_timeout_s: float = Field(3.0, gt=0, le=60, description="Limit for opening or closing the ports (s).")
+    read_timeout_s: float = Field(0.05, gt=0, le=1, description="Data-port read granularity (s): stop latency.")
+    stall_timeout_s: float = Field(3.0, gt=0, le=120, description="No packet for this long (+3 frames) = reconnect.")
+    reconnect_initial_s: float = Field(0.5, gt=0, le=60, description="First reconnect delay; doubles each try.")
+    reconnect_max_s: float = Field(10.0, gt=0, le=600, description="Longest reconnect delay (s).")
+    base_cfg: Path | None = Field(None, description="Your own cfg: its non-chirp lines (CFAR, calibration) are kept.")
+    board: Literal["isk", "aop"] = Field("isk", description="Antenna board: chirp TX order and RX gain.")
+    num_tx: Literal[2, 3] = Field(3, description="TX antennas in TDM: 3 (azimuth + elevation) or 2 (azimuth, isk).")
+    range_profile: bool = Field(False, description="Also stream the range profile (TLV 2; costs UART budget).")
+    max_points: int = Field(100, ge=1, le=1000, description="Points per frame assumed when checking the UART budget.")
+    frame_queue: int = Field(4, ge=1, le=64, description="Frames buffered before the oldest is dropped.")
+
+    @model_validator(mode="after")
+    def _antennas_fit_board(self) -> IWR6843Config:
+        if self.num_tx == 2 and self.board != "isk":
+            raise ValueError("num_tx 2 (azimuth-only TDM) is supported on board isk only")
+        return self
+
+
+class IWR6843Driver(Driver):
+    """Radar frames as float32 (N, 5) points; ``apply`` switches the chirp profile."""
+
+    key = "iwr6843"
+    config: IWR6843Config
+
+    def __init__(self, config: IWR6843Config, clock: Clock, context: DriverContext | None = None) -> None:
+        super().__init__(config, clock, context)
+        self._log = log.bind(sensor=self.name)
+        self.parser = MmwParser()
+        self._max_rate = min(max_rate_hz(m, config.num_tx, config.max_points, config.range_profile) for m in MODES)
+        self._queue: DropOldestQueue[Frame | None] = DropOldestQueue(config.frame_queue, name=self.name)
+        self._cli: CliPort | None = None
+        self._ports: list[Any] = []
+        self._reader: DataPortReader | None = None
+        self._base: list[str] | None = None
+        self.profile: ChirpProfile | None = None  # what the radar runs now (None: stopped)
+        self._wanted = self.applied
+        self._lock = asyncio.Lock()  # one reconfiguration (or reconnect) at a time
+        self._failed = asyncio.Event()
+        self._watch_task: asyncio.Task[None] | None = None
+        self._running = False
+        self._seq = 0
+        self._last_packet = 0.0  # time.monotonic() of the last packet, for stall detection
+        self.switch_times_s: list[float] = []
+        self.foreign_packets = 0
+
+    @property
+    def capabilities(self) -> Capabilities:
+        return Capabilities(modality="radar", modes=MODES, min_rate_hz=1.0, max_rate_hz=float(self._max_rate))
+
+    async def start(self) -> None:
+        if self._running:
+            return
+        if self.config.base_cfg is not None and self._base is None:
+            try:
+                self._base = await asyncio.to_thread(cfg.read_cfg, self.config.base_cfg)
+            except InputError as err:
+                raise ConfigError(f"sensor {self.name}: base_cfg: {err}") from err
+        self._queue = DropOldestQueue(self.config.frame_queue, name=self.name)
+        self._failed = asyncio.Event()
+        async with self._lock:
+            try:
+                await self._connect()
+                self.applied = await self._switch(self._wanted)
+            except BaseException:
+                await self._disconnect()
+                raise
+        self._running = True
+        self._watch_task = asyncio.create_task(self._watch(), name=f"{self.name}-watch")
+        self._log.info("radar.started", cli=self.config.cli_port, data=self.config.data_port)
+
+    async def stop(self) -> None:
+        if not self._running and not self._ports:
+            return
+        self._running = False
+        if self._watch_task is not None:
+            self._watch_task.cancel()
+            with contextlib.suppress(asyncio.CancelledError):
+                await self._watch_task
+            self._watch_task = None
+        async with self._lock:
+            if self._cli is not None and self.profile is not None:
+                with contextlib.suppress(*_RECOVERABLE, TimeoutError):
+                    await self._cli_call(self._cli.command, "sensorStop")
+            await self._disconnect()
+        self._queue.put(None)  # ends frames()
+        self._log.info("radar.stopped", frames=self.health.frames, **self.parser.stats.as_dict())
+
+    async def frames(self) -> AsyncIterator[Frame]:
+        queue = self._queue
+        while True:
+            frame = await queue.get()
+            if frame is None:
+                return
+            yield frame
+
+    async def apply(self, request: SensorConfig) -> SensorConfig:
+        async with self._lock:
+            self._wanted = request
+            if not self._running:
+                self.applied = self._plan(request)[0]  # sent to the radar at start
+                return self.applied
+            self.applied = await self._switch(request)
+            return self.applied
+
+    def _plan(self, request: SensorConfig) -> tuple[SensorConfig, ChirpProfile | None]:
+        """Clamp to the capabilities and pick the table row; notes say what changed."""
+        clamped = clamp_request(self.capabilities, request)
+        if not clamped.enabled:
+            return clamped, None
+        profile = lookup(clamped.mode or "range", clamped.rate_hz, self.config.num_tx)
+        notes = list(clamped.notes)
+        if profile.rate_hz != clamped.rate_hz:
+            notes.append(f"rate {clamped.rate_hz:g} Hz -> {profile.rate_hz:g} Hz (chirp table row)")
+        return replace(clamped, rate_hz=profile.rate_hz, notes=tuple(notes)), profile
+
+    async def _switch(self, request: SensorConfig) -> SensorConfig:
+        """Send the cfg for ``request`` unless the radar already runs it. Caller holds the lock."""
+        planned, profile = self._plan(request)
+        if profile == self.profile:
+            return planned
+        assert self._cli is not None
+        c = self.config
+        lines = ["sensorStop"] if profile is None else cfg.render(profile, c.board, c.range_profile, self._base)
+        self.health.paused = True
+        started = time.monotonic()
+        try:
+            await self._cli_call(self._cli.send_config, lines, lines=len(lines))
+        except (*_RECOVERABLE, TimeoutError) as err:
+            self.profile = None
+            self.health.error(err)
+            raise DriverIOError(f"radar {self.name}: reconfiguration failed: {err}") from err
+        seconds = time.monotonic() - started
+        self.profile = profile
+        self._last_packet = time.monotonic()
+        if profile is None:
+            self._log.info("radar.disabled", switch_ms=round(seconds * 1000, 1))
+            return replace(planned, notes=(*planned.notes, "radar stopped (sensorStop)"))
+        self.parser.doppler_resolution = profile.velocity_resolution_mps  # SDK 2.x Doppler bins -> m/s
+        self.health.paused = False
+        self.switch_times_s.append(seconds)
+        self._log.info("radar.switch", mode=profile.preference, rate_hz=profile.rate_hz,
+                       switch_ms=round(seconds * 1000, 1), commands=len(lines), **profile.figures())
+        note = f"radar reconfigured in {seconds * 1000:.0f} ms (stream paused)"
+        return replace(planned, notes=(*planned.notes, note))
+
+    async def _cli_call(self, fn: Any, *args: Any, lines: int = 1) -> Any:
+        """Run a blocking CLI call in a worker thread, bounded by the per-line timeouts."""
+        per_line = self.config.cli_timeout_s * 4 * (self.config.cli_retries + 1)  # x4: sensorStart is slow
+        return await asyncio.wait_for(asyncio.to_thread(fn, *args), timeout=per_line * lines + 1.0)
+
+    async def _connect(self) -> None:
+        """Open both ports, wake the CLI, start the data reader. DriverUnavailableError if absent."""
+        for port in (self.config.cli_port, self.config.data_port):
+            if not os.path.exists(port):
+                raise DriverUnavailableError(f"radar {self.name}: {port} is absent (board unplugged?)")
+        try:
+            self._ports = await asyncio.wait_for(asyncio.to_thread(self._open_ports), self.config.open_timeout_s)
+            self._cli = CliPort(self._ports[0], self.config.cli_timeout_s, self.config.cli_retries)
+            await self._cli_call(self._cli.wake)
+        except (OSError, TimeoutError) as err:
+            raise DriverUnavailableError(f"radar {self.name}: cannot open ports: {err}") from err
+        self._reader = DataPortReader(self._ports[1], self.parser, asyncio.get_running_loop(),
+                                      self._on_packets, self._on_read_error, name=f"{self.name}-data")
+        self._reader.start()
+
+    def _open_ports(self) -> list[Any]:
+        import serial  # pyserial: imported when a radar is really opened
+
+        c = self.config
+        cli = serial.Serial(c.cli_port, c.cli_baud, timeout=0.1, write_timeout=c.cli_timeout_s)
+        try:
+            data = serial.Serial(c.data_port, c.data_baud, timeout=c.read_timeout_s)
+        except BaseException:
+            cli.close()
+            raise
+        data.reset_input_buffer()  # bytes from before we listened are a partial frame at best
+        return [cli, data]
+
+    async def _disconnect(self) -> None:
+        reader, ports = self._reader, self._ports
+        self._reader, self._ports, self._cli, self.profile = None, [], None, None
+        if reader is not None:
+            await asyncio.to_thread(reader.stop, self.config.open_timeout_s)
+        for port in ports:
+            with contextlib.suppress(OSError, TimeoutError):
+                await asyncio.wait_for(asyncio.to_thread(port.close), self.config.open_timeout_s)
+
+    def _on_packets(self, packets: list[Packet]) -> None:
+        """On the loop: packets from the reader thread become Frames."""
+        for packet in packets:
+            if not isinstance(packet, RadarPacket):
+                if self.foreign_packets == 0:
+                    self._log.warning("radar.foreign_format", kind=packet.kind, hint="not the out-of-box demo")
+                self.foreign_packets += 1
+                continue
+            t = self.clock.now()
+            frame = packet.to_frame(t, self._seq)
+            frame.meta["mode"] = self.profile.preference if self.profile else None
+            self._seq += 1
+            self.health.frame(t)
+            self.health.drops += packet.gap  # frames the radar numbered but the UART lost
+            if not self._queue.put(frame):
+                self.health.drops += 1
+            self._last_packet = time.monotonic()
+
+    def _on_read_error(self, err: BaseException) -> None:
+        self.health.error(err)
+        self._failed.set()
+
+    def _stalled(self) -> bool:
+        if self.profile is None or self.health.paused:
+            return False
+        limit = self.config.stall_timeout_s + 3 * self.profile.frame_period_ms / 1000
+        return time.monotonic() - self._last_packet > limit
+
+    async def _watch(self) -> None:
+        """Reconnect when the data port fails or goes silent."""
+        while self._running:
+            try:
+                await asyncio.wait_for(self._failed.wait(), timeout=0.25)
+            except TimeoutError:
+                if not self._stalled():
+                    continue
+                self.health.error("no radar packets")
+            self._failed.clear()
+            await self._reconnect()
+
+    async def _reconnect(self) -> None:
+        delay = self.config.reconnect_initial_s
+        self._log.warning("radar.lost", error=self.health.last_error)
+        self.health.paused = True
+        while self._running:
+            async with self._lock:
+                await self._disconnect()
+                try:
+                    await self._connect()
+                    self.applied = await self._switch(self._wanted)
+                except _RECOVERABLE as err:
+                    self.health.error(err)
+                    self._log.debug("radar.retry", delay_s=delay, error=str(err))
+                else:
+                    self.health.restarts += 1
+                    self._log.info("radar.back", restarts=self.health.restarts)
+                    return
+            await asyncio.sleep(delay)
+            delay = min(delay * 2, self.config.reconnect_max_s)
