@@ -1,0 +1,128 @@
+"""Chirp table, FMCW figures, TI limit checks and cfg text."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+
+from respecd.errors import ConfigError, InputError
+from respecd.radar import cfg
+from respecd.radar.chirp import MIN_LOOPS, RATES_HZ, TEMPLATES, ChirpProfile, build_table, lookup, max_rate_hz
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+
+# TI mmWave Demo Visualizer 3.6 xWR68xx presets (Homerlars/Slim-IWR6843-Parser radar_config/, SENSORS.md §2.4)
+VISUALIZER_RANGE = [
+    "profileCfg 0 60 388 7 28.49 0 0 30 1 256 12499 0 0 158", "chirpCfg 0 0 0 0 0 0 0 1", "chirpCfg 1 1 0 0 0 0 0 2",
+    "chirpCfg 2 2 0 0 0 0 0 4", "frameCfg 0 2 16 0 100 1 0", "CQRxSatMonitor 0 3 4 63 0", "CQSigImgMonitor 0 127 4",
+    "cfarFovCfg -1 0 0 49.99", "channelCfg 15 7 0", "compRangeBiasAndRxChanPhase 0.0" + " 1 0 -1 0" * 6,
+]
+VISUALIZER_VELOCITY = [
+    "profileCfg 0 60 115 7 15 0 0 100 1 64 9142 0 0 158", "frameCfg 0 2 128 0 100 1 0",
+    "CQRxSatMonitor 0 3 4 19 0", "CQSigImgMonitor 0 31 4", "cfarFovCfg -1 0 0 10.97", "cfarFovCfg -1 1 -3.20 3.20",
+    "cfarCfg -1 1 0 8 4 4 1 15 1",
+]
+
+
+def _figures(profile: ChirpProfile) -> tuple[float, float, float, float]:
+    return (profile.range_resolution_m, profile.max_range_m, profile.max_velocity_mps, profile.velocity_resolution_mps)
+
+
+def test_templates_give_the_figures_in_sensors_md() -> None:
+    assert _figures(TEMPLATES["range"]) == pytest.approx((0.244, 56.2, 1.00, 0.125), rel=2e-3)
+    assert _figures(TEMPLATES["velocity"]) == pytest.approx((0.214, 12.34, 3.20, 0.050), rel=3e-3)
+
+
+def test_figures_match_real_visualizer_cfg_headers() -> None:
+    # the visualizer's 30-fps preset states range res 0.434 m, vmax 15.14 m/s
+    lines = ["channelCfg 15 7 0", "profileCfg 0 60 8 7 19.52 0 0 30 1 144 12499 0 0 158",
+             "frameCfg 0 2 16 0 33.333 1 0"]
+    fast = cfg.profile_from_lines(lines)
+    assert fast.range_resolution_m == pytest.approx(0.434, abs=1e-3)
+    assert fast.max_velocity_mps == pytest.approx(15.14, abs=1e-2) and fast.rate_hz == pytest.approx(30, abs=1e-3)
+    path = REAL / "ti_awr1642_oob_piatek" / "AWR1642-SDK_3_6_0.cfg"
+    if not path.exists():
+        pytest.skip(f"{path} absent")
+    # header: Range Resolution 0.044, Maximum Radial Velocity 1, Radial velocity resolution 0.13, 100 ms
+    real = cfg.profile_from_lines(cfg.read_cfg(path))
+    assert real.num_tx == 2 and real.rate_hz == 10
+    assert (real.range_resolution_m, real.max_velocity_mps, real.velocity_resolution_mps) == pytest.approx(
+        (0.044, 1.0, 0.13), abs=6e-3)
+
+
+def test_every_table_row_respects_ti_limits() -> None:
+    for num_tx in (2, 3):
+        table = build_table(num_tx)
+        assert len(table) == 2 * len(RATES_HZ)
+        for (preference, rate), profile in table.items():
+            assert profile.preference == preference and profile.rate_hz == rate
+            assert profile.problems() == [], (preference, rate)
+            assert profile.active_frame_ms <= 0.5 * profile.frame_period_ms
+            assert profile.loops >= MIN_LOOPS and profile.loops & (profile.loops - 1) == 0
+    for preference in ("range", "velocity"):
+        rows = [lookup(preference, r) for r in RATES_HZ]  # type: ignore[arg-type]
+        resolutions = [p.velocity_resolution_mps for p in rows]
+        assert resolutions == sorted(resolutions)  # a faster frame rate never buys finer velocity resolution
+    assert lookup("velocity", 30).loops < lookup("velocity", 10).loops
+    assert lookup("range", 30).max_velocity_mps > lookup("range", 10).max_velocity_mps  # shorter idle
+
+
+def test_problems_catch_each_limit() -> None:
+    base = lookup("range", 30)
+    assert any("UART" in p for p in base.problems(max_points=200))
+    assert max_rate_hz("range", max_points=200) < 30 and max_rate_hz("range") == 30
+    too_long = dataclasses.replace(base, loops=256)
+    assert any("active frame" in p for p in too_long.problems())
+    off_band = dataclasses.replace(TEMPLATES["velocity"], ramp_end_us=50.0)
+    assert any("band" in p for p in off_band.problems())
+    short_ramp = dataclasses.replace(TEMPLATES["range"], ramp_end_us=20.0)
+    assert any("ADC sampling" in p for p in short_ramp.problems())
+
+
+def test_lookup_picks_the_nearest_tabulated_rate() -> None:
+    assert lookup("range", 12.4).rate_hz == 12 and lookup("velocity", 0.2).rate_hz == 1
+
+
+def test_render_reproduces_the_visualizer_presets() -> None:
+    for preference, expected in (("range", VISUALIZER_RANGE), ("velocity", VISUALIZER_VELOCITY)):
+        lines = cfg.render(lookup(preference, 10), board="aop", range_profile=True)  # type: ignore[arg-type]
+        assert lines[:2] == ["sensorStop", "flushCfg"] and lines[-1] == "sensorStart"
+        for line in expected:
+            assert line in lines, line
+        assert "guiMonitor -1 1 1 0 0 0 1" in lines
+
+
+def test_render_for_isk_two_tx_and_without_range_profile() -> None:
+    lines = cfg.render(lookup("range", 10, num_tx=2), board="isk")
+    assert "channelCfg 15 5 0" in lines and "guiMonitor -1 1 0 0 0 0 1" in lines
+    assert [line for line in lines if line.startswith("chirpCfg")] == ["chirpCfg 0 0 0 0 0 0 0 1",
+                                                                      "chirpCfg 1 1 0 0 0 0 0 4"]
+    assert any(line.startswith("frameCfg 0 1 ") for line in lines)
+    with pytest.raises(ConfigError, match="aop"):
+        cfg.render(lookup("range", 10, num_tx=2), board="aop")
+
+
+def test_render_keeps_a_user_base_cfg_and_replaces_only_the_chirp() -> None:
+    path = REAL / "ti_iwr6843_oob_automated_doors" / "profile_3d_automated_doors_ISK.cfg"
+    if not path.exists():
+        pytest.skip(f"{path} absent")
+    base = cfg.read_cfg(path)
+    lines = cfg.render(lookup("velocity", 20), board="isk", base=base)
+    assert lines[:2] == ["sensorStop", "flushCfg"] and lines[-1] == "sensorStart"
+    assert lines.count("sensorStart") == 1 and lines.count("sensorStop") == 1
+    assert [line for line in lines if line.startswith("profileCfg")] == [
+        "profileCfg 0 60 115 7 15 0 0 100 1 64 9142 0 0 30"]
+    assert "cfarCfg -1 0 2 8 4 3 0 20 0" in lines and "clutterRemoval -1 1" in lines  # the user's choices stay
+    assert "gatingParam 4 2 2 2 10" in lines  # commands we do not know are kept in place
+    assert lines.index("profileCfg 0 60 115 7 15 0 0 100 1 64 9142 0 0 30") < lines.index("frameCfg 0 2 64 0 50 1 0")
+
+
+def test_read_cfg_errors_name_the_file(tmp_path: Path) -> None:
+    with pytest.raises(InputError, match="no such cfg file"):
+        cfg.read_cfg(tmp_path / "missing.cfg")
+    partial = tmp_path / "partial.cfg"
+    partial.write_text("% only comments\nsensorStop\nguiMonitor -1 1 0 0 0 0 1\n")
+    with pytest.raises(InputError, match="partial.cfg: cfg lacks channelCfg, profileCfg, chirpCfg, frameCfg"):
+        cfg.read_cfg(partial)

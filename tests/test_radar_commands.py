@@ -1,0 +1,86 @@
+"""``respecd radar-profile`` and ``respecd radar-dump`` through the real command line."""
+
+from __future__ import annotations
+
+import json
+import random
+from pathlib import Path
+
+import pytest
+
+from respecd.cli import main
+from respecd.radar.cfg import parse_lines
+from respecd.radar.tlv import MAGIC
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
+SDK33 = REAL / "ti_iwr6843_oob_automated_doors" / "xwr68xx_processed_stream_2019_12_04T21_44_51_663.dat"
+SDK36 = REAL / "ti_awr1642_oob_piatek" / "AWR1642_test_data_SDK_3_6_0.dat"
+PPLCOUNT = REAL / "ti_iwr6843aop_pplcount_niek" / "data.bin"
+
+
+def _need(path: Path) -> Path:
+    if not path.exists():
+        pytest.skip(f"shared capture {path} absent (CI clones shared/ beside the repo)")
+    return path
+
+
+def test_radar_profile_prints_a_cfg_with_its_figures(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["radar-profile", "--prefer", "range", "--fps", "10"]) == 0
+    out = capsys.readouterr().out
+    assert "% Range Resolution(m): 0.2441" in out and "% Maximum Radial Velocity(m/s): 1.0" in out
+    lines = parse_lines(out)
+    assert lines[0] == "sensorStop" and lines[-1] == "sensorStart"
+    assert "profileCfg 0 60 388 7 28.49 0 0 30 1 256 12499 0 0 30" in lines
+
+
+def test_radar_profile_json_table_and_limits(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["radar-profile", "--prefer", "velocity", "--fps", "30", "--json"]) == 0
+    figures = json.loads(capsys.readouterr().out)
+    assert figures["loops"] == 32 and figures["problems"] == [] and figures["max_velocity_mps"] == pytest.approx(3.205)
+    assert main(["radar-profile", "--fps", "30", "--max-points", "200"]) == 1
+    assert "UART needs" in capsys.readouterr().err
+    assert main(["radar-profile", "--table"]) == 0
+    assert len(capsys.readouterr().out.splitlines()) == 1 + 60
+    assert main(["radar-profile", "--fps", "45"]) == 2
+    assert "--fps 45: expected a frame rate from 1 to 30 Hz" in capsys.readouterr().err
+
+
+def test_radar_dump_json_lines_and_summary(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["radar-dump", str(_need(SDK33)), "--json"]) == 0
+    captured = capsys.readouterr()
+    records = [json.loads(line) for line in captured.out.splitlines()]
+    assert [r["frame"] for r in records] == list(range(209, 310))
+    assert {r["version"] for r in records} == {"3.3.0.2"}
+    assert all(isinstance(r["points"], int) and r["tlvs"][0] == 1 for r in records)
+    assert "101 frames" in captured.err and "0 bytes skipped" in captured.err and "0 gaps" in captured.err
+
+
+def test_radar_dump_text_reports_skips_and_gaps(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    data = _need(SDK36).read_bytes()
+    starts = [i for i in range(len(data)) if data.startswith(MAGIC, i)]
+    cut = data[:starts[10]] + data[starts[12]:]  # frames 79 and 80 lost
+    capture = tmp_path / "cut.dat"
+    capture.write_bytes(cut)
+    assert main(["radar-dump", str(capture)]) == 0
+    captured = capsys.readouterr()
+    lines = captured.out.splitlines()
+    assert len(lines) == 98 and "GAP 2 missing" in lines[10]
+    assert "376 bytes skipped" in captured.err and "1 gaps (2 frames missing)" in captured.err
+
+
+def test_radar_dump_flags_the_people_counting_format(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["radar-dump", str(_need(PPLCOUNT))]) == 0
+    captured = capsys.readouterr()
+    assert "3473 people-counting frames" in captured.err and "0 frames" in captured.err
+    assert "not the out-of-box format" in captured.out.splitlines()[0]
+
+
+def test_radar_dump_bad_input_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["radar-dump", str(tmp_path / "missing.dat")]) == 2
+    assert "missing.dat: no such capture file" in capsys.readouterr().err
+    noise = tmp_path / "noise.bin"
+    noise.write_bytes(random.Random(3).randbytes(5000))
+    assert main(["radar-dump", str(noise)]) == 2
+    assert "no TI mmWave data-port frames in 5000 bytes" in capsys.readouterr().err
+    assert main(["radar-dump", str(tmp_path)]) == 2
+    assert "is a directory" in capsys.readouterr().err
