@@ -8,4 +8,7 @@ from __future__ import annotations
 
 BENCHES: dict[str, str] = {
     "pipeline": "respecd.bench.pipeline",
+    "inference": "respecd.bench.inference",
+    "controller": "respecd.bench.controller",
+    "sim": "respecd.bench.sim",
 }

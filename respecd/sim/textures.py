@@ -62,16 +62,20 @@ def room_depth(room: Room, camera_height: float, cam: Camera) -> np.ndarray:
 def rgb_background(room: Room, camera_height: float, cam: Camera) -> tuple[np.ndarray, float]:
     """uint8 BGR reflectance of the room under full light, and its mean level (0..255)."""
     xn, yn = _rays(cam)
-    z = room_depth(room, camera_height, cam)
-    on_floor = z < room.wall_z
-    wx, wy = xn * z, yn * z  # world x, y (m) of each pixel's surface point
-    tiles = ((np.floor(wx / 0.6) + np.floor(z / 0.6)) % 2) * 0.12 + 0.88  # 60 cm floor tiles
-    panels = np.where((wx % 1.2) < 0.03, 0.7, 1.0)  # wall panel seams every 1.2 m
-    skirting = np.where(wy > camera_height - 0.12, 0.6, 1.0)
-    shade = np.where(on_floor, tiles, panels * skirting)
+    z = room_depth(room, camera_height, cam)[:, :1]  # (H, 1): planes, so depth depends on the row only
+    floor_rows = (z[:, 0] < room.wall_z).nonzero()[0]
+    panels = np.where((xn * room.wall_z) % 1.2 < 0.03, 0.7, 1.0).astype(np.float32)  # seams every 1.2 m
+    skirting = np.where(yn * room.wall_z > camera_height - 0.12, 0.6, 1.0).astype(np.float32)
+    shade = panels * skirting  # (H, W) wall
+    zf = z[floor_rows]  # floor rows only: 60 cm tiles in world x (= xn * z) and z
+    parity = (np.floor(xn * zf * (1 / 0.6)) + np.floor(zf * (1 / 0.6))).astype(np.int32) & 1
+    shade[floor_rows] = 0.88 + 0.12 * parity.astype(np.float32)
     shade *= 1.0 + 0.15 * _low_freq(room.texture_seed, cam.height, cam.width)
-    color = np.where(on_floor[..., None], np.array(room.floor_color, np.float32), np.array(room.wall_color, np.float32))
-    image = np.clip(color * shade[..., None], 0, 255).astype(np.uint8)
+    image = np.empty((cam.height, cam.width, 3), np.uint8)
+    for ch in range(3):
+        color = np.full((cam.height, 1), room.wall_color[ch], np.float32)
+        color[floor_rows] = room.floor_color[ch]
+        image[..., ch] = cv2.convertScaleAbs(shade * color)  # saturating cast to uint8
     _posters(image, room, cam)
     return image, float(image.mean())
 
