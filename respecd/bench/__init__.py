@@ -8,7 +8,5 @@ from __future__ import annotations
 
 BENCHES: dict[str, str] = {
     "pipeline": "respecd.bench.pipeline",
-    "inference": "respecd.bench.inference",
-    "controller": "respecd.bench.controller",
     "sim": "respecd.bench.sim",
 }
