@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from respecd.control.config import ALL_FACTORS, Thresholds
-from respecd.control.features import FeatureExtractor, Sample, Window
+from respecd.control.features import FeatureExtractor, Sample, Window, scene_light
 from respecd.control.state import Observation, StateSpace, bin3, conf_agg, dominant
 from respecd.messages import Bundle, Frame, Health, Percept, SyncStats
 
@@ -134,3 +134,10 @@ def test_window_averages_prunes_and_keeps_last_scene_values() -> None:
     assert later.illumination == pytest.approx(0.2)  # last known light, not "unknown"
     assert later.contributions == {"rgb": 0.2, "thermal": 0.8}
     assert later.load == pytest.approx(0.9)
+
+
+def test_auto_exposure_is_undone_for_illumination() -> None:
+    # 5 Hz in a dark room: 200 ms at gain 3 gives a frame as bright as daylight at 1/30 s
+    assert scene_light(0.42, {"exposure_s": 0.2, "gain": 3.0}) == pytest.approx(0.42 / 18)
+    assert scene_light(0.42, {}) == 0.42  # a camera that does not say keeps the raw mean
+    assert scene_light(0.9, {"exposure_s": 0.01, "gain": 1.0}) == 1.0

@@ -26,7 +26,9 @@ class Thresholds(StrictModel):
     """Bin edges of the six state factors (value < low: bin 0; < high: bin 1; else bin 2)."""
 
     illumination: tuple[float, float] = Field(
-        (0.25, 0.5), description="Mean RGB luminance, 0..1 (0 black, 1 white): dark / dim / bright."
+        (0.2, 0.35),
+        description="Mean RGB luminance 0..1, normalised to a 1/30 s exposure at gain 1 when the frame reports "
+        "its exposure: dark / dim / bright.",
     )
     motion_image: tuple[float, float] = Field(
         (0.02, 0.08),

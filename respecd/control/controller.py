@@ -52,6 +52,8 @@ class Controller:
         self._switched = False
         self._last_switch_t = -math.inf
         self._model_cache: tuple[Position, float] | None = None
+        self._applied_seen: tuple[SensorConfig, ...] | None = None
+        self._applied_power: float | None = None
 
     @classmethod
     def from_profile(
@@ -89,7 +91,7 @@ class Controller:
 
     def step(self, obs: Observation, applied: Mapping[str, SensorConfig] | None = None) -> Decision:
         """One decision. ``applied``: what each sensor (by name) really runs now."""
-        if applied:
+        if applied and not self._same_applied(applied):
             self.position = self._resync(applied)
         bins = self.states.bins(obs)
         state = self.states.index(bins)
@@ -130,6 +132,16 @@ class Controller:
         action = self.table.choose(state, self.epsilon)
         return action, self.space.apply(self.position, action)
 
+    def _same_applied(self, applied: Mapping[str, SensorConfig]) -> bool:
+        """True when ``applied`` holds the very objects of the last step (nothing re-applied)."""
+        values = tuple(applied.values())
+        last = self._applied_seen
+        if last is not None and len(last) == len(values) and all(a is b for a, b in zip(last, values, strict=True)):
+            return True
+        self._applied_seen = values
+        self._applied_power = None
+        return False
+
     def _resync(self, applied: Mapping[str, SensorConfig]) -> Position:
         """Follow what the drivers really run (a failed or clamped apply moves us back)."""
         cells = list(self.position)
@@ -140,7 +152,9 @@ class Controller:
 
     def _model_power(self, applied: Mapping[str, SensorConfig] | None) -> float:
         if applied:
-            return sensor_power(applied.items(), self.powers)
+            if self._applied_power is None:
+                self._applied_power = sensor_power(applied.items(), self.powers)
+            return self._applied_power
         if self._model_cache is None or self._model_cache[0] != self.position:
             names = (slot.name for slot in self.space.slots)
             watts = sensor_power(zip(names, self.space.requests(self.position), strict=True), self.powers)

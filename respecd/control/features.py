@@ -17,6 +17,7 @@ from respecd.control.state import Observation
 from respecd.messages import Frame, Health, Percept
 
 GRID = (18, 32)  # sample points (rows, cols) per image
+REFERENCE_FPS = 30.0  # illumination is normalised to a 1/30 s exposure at gain 1
 _HEALTH_LEVEL = {Health.GOOD: 0, Health.FAIR: 1, Health.POOR: 2}
 _BGR_LUMA = np.array([0.114, 0.587, 0.299], dtype=np.float32) / 255.0  # Rec. 601, BGR order
 
@@ -52,6 +53,7 @@ class FeatureExtractor:
             rgb = bundle.frames.get("rgb")
             if rgb is not None:
                 luminance, frame_diff = self._luma(rgb)
+                luminance = scene_light(luminance, rgb.meta)
             imu = bundle.frames.get("imu")
             if imu is not None and imu.data.size >= 6:
                 gyro = float(np.linalg.norm(imu.data[3:6]))
@@ -83,6 +85,19 @@ class FeatureExtractor:
             cols = np.linspace(0, width - 1, GRID[1]).round().astype(np.intp)
             self._grids[key] = (rows[:, None], cols[None, :])
         return self._grids[key]
+
+
+def scene_light(luminance: float, meta: dict) -> float:
+    """Mean luminance as it would be at a 1/30 s exposure and unity gain, 0..1.
+
+    Auto-exposure hides the dark: a camera at 5 Hz exposes up to 200 ms and returns a frame
+    as bright as in daylight. When the frame says how it was exposed (``exposure_s``,
+    ``gain`` in its meta, as the simulator and UVC drivers report), undo that.
+    """
+    exposure, gain = meta.get("exposure_s"), meta.get("gain")
+    if not exposure or not gain:
+        return luminance
+    return min(luminance / (float(exposure) * REFERENCE_FPS * float(gain)), 1.0)
 
 
 def _mean(values: list[float]) -> float | None:

@@ -32,22 +32,22 @@ class QTable:
 
     def update(self, state: int, action: int, reward: float, next_state: int) -> float:
         """One Watkins update; returns the TD error."""
-        row = self.q[state]
-        target = reward + self.learning.discount * float(self.q[next_state].max())
-        error = target - float(row[action])
-        row[action] += self.learning.learning_rate * error
+        # rows are a few dozen values: Python max over tolist() beats a numpy reduction here
+        target = reward + self.learning.discount * max(self.q[next_state].tolist())
+        error = target - float(self.q[state, action])
+        self.q[state, action] += self.learning.learning_rate * error
         self.visits[state, action] += 1
         self.updates += 1
         self.epsilon = max(self.learning.epsilon_min, self.epsilon * self.learning.epsilon_decay)
         return error
 
     def greedy(self, state: int) -> int:
-        row = self.q[state]
-        best = row.max()
-        ties = np.flatnonzero(row == best)
-        if ties.size == 1:
-            return int(ties[0])
-        return int(ties[self.rng.integers(ties.size)])
+        row = self.q[state].tolist()
+        best = max(row)
+        ties = [i for i, v in enumerate(row) if v == best]
+        if len(ties) == 1:
+            return ties[0]
+        return ties[int(self.rng.integers(len(ties)))]
 
     def choose(self, state: int, epsilon: float) -> int:
         """ε-greedy: a uniformly random action with probability ``epsilon``."""

@@ -9,7 +9,7 @@ runs once per decision and sits inside the benchmarked step.
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -83,6 +83,7 @@ class StateSpace:
         self.thresholds = thresholds
         self.bin_names: list[tuple[str, ...]] = [BIN_NAMES[f] for f in self.factors]
         self.contribution_modalities = tuple(contribution_modalities)
+        self._binners = [self._binner(f) for f in self.factors]
         if self.contribution_modalities:
             self.factors += ("dominant",)
             self.bin_names.append((NO_CONTRIBUTION, *self.contribution_modalities))
@@ -93,29 +94,31 @@ class StateSpace:
 
     def bins(self, obs: Observation) -> tuple[int, ...]:
         """Bin index per factor for one observation."""
-        out = [self._factor_bin(f, obs) for f in self.factors if f != "dominant"]
+        out = [binner(obs) for binner in self._binners]
         if self.contribution_modalities:
             name = dominant(obs.contributions, self.contribution_modalities)
             out.append(self.bin_names[-1].index(name))
         return tuple(out)
 
-    def _factor_bin(self, factor: str, obs: Observation) -> int:
+    def _binner(self, factor: str) -> Callable[[Observation], int]:
+        """One small function per factor, built once (bins() runs inside the timed step)."""
         th = self.thresholds
         if factor == "illumination":
             # unknown light (no RGB frame yet) is the middle bin, not "dark"
-            return 1 if obs.illumination is None else bin3(obs.illumination, th.illumination)
+            return lambda o: 1 if o.illumination is None else bin3(o.illumination, th.illumination)
         if factor == "motion":
             # a still robot watching a moving target is still "moving": take the larger bin
-            image = 0 if obs.motion_image is None else bin3(obs.motion_image, th.motion_image)
-            imu = 0 if obs.motion_imu is None else bin3(obs.motion_imu, th.motion_imu_rad_s)
-            return max(image, imu)
+            return lambda o: max(
+                0 if o.motion_image is None else bin3(o.motion_image, th.motion_image),
+                0 if o.motion_imu is None else bin3(o.motion_imu, th.motion_imu_rad_s),
+            )
         if factor == "radar_density":
-            return 0 if obs.radar_points is None else bin3(obs.radar_points, th.radar_points)
+            return lambda o: 0 if o.radar_points is None else bin3(o.radar_points, th.radar_points)
         if factor == "load":
-            return bin3(obs.load, th.load)
+            return lambda o: bin3(o.load, th.load)
         if factor == "sync":
-            return bin3(obs.sync, th.sync)
-        return bin3(obs.conf_agg, th.confidence)
+            return lambda o: bin3(o.sync, th.sync)
+        return lambda o: bin3(o.conf_agg, th.confidence)
 
     def index(self, bins: Sequence[int]) -> int:
         idx = 0

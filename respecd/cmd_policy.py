@@ -1,0 +1,81 @@
+"""``respecd policy show FILE``: the learned policy as a readable table.
+
+One row per visited state (named bins) with its greedy action (what ``--policy exploit``
+will do there), that action's Q-value, how often the state was updated and how many of its
+actions have been tried (with optimistic init an untried action keeps its optimistic
+value), plus how much of the state space the robot has seen.
+The file carries its own layout (factor bins, action names), so no profile is needed.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="policy_command", metavar="VERB", required=True)
+    show = sub.add_parser("show", help="print the learned policy of a Q-table file")
+    show.add_argument("file", type=Path, help="Q-table (.npz) from the state directory")
+    show.add_argument("--limit", type=int, default=40, help="rows to print (default 40; 0 = every visited state)")
+    show.add_argument("--sort", choices=("visits", "state", "q"), default="visits", help="row order (default visits)")
+
+
+def main(args: argparse.Namespace) -> int:
+    from respecd.control.persist import read_table
+
+    meta, q, visits = read_table(args.file)
+    print("\n".join(render(meta, q, visits, limit=args.limit, sort=args.sort)))
+    return 0
+
+
+def _unindex(index: int, dims: list[int]) -> list[int]:
+    bins = []
+    for d in reversed(dims):
+        index, b = divmod(index, d)
+        bins.append(b)
+    return bins[::-1]
+
+
+def render(meta: dict[str, Any], q: np.ndarray, visits: np.ndarray, limit: int = 40, sort: str = "visits") -> list[str]:
+    """The lines ``policy show`` prints."""
+    layout = meta["layout"]
+    factors: list[str] = layout["states"]["factors"]
+    bin_names: list[list[str]] = layout["states"]["bins"]
+    actions: list[str] = layout["actions"]["names"]
+    dims = [len(b) for b in bin_names]
+    state_visits = visits.sum(axis=1)
+    visited = np.flatnonzero(state_visits)
+    n_states, n_actions = q.shape
+    lines = [
+        f"Q-table {meta.get('profile', '?')}: {n_states} states x {n_actions} actions, "
+        f"{meta.get('updates', 0)} updates, epsilon {meta.get('epsilon', 0):.3f}, "
+        f"fingerprint {meta.get('fingerprint')}",
+        f"states visited: {visited.size} of {n_states} ({100 * visited.size / n_states:.1f} %); "
+        f"state-action pairs tried: {int((visits > 0).sum())} of {q.size} ({100 * (visits > 0).mean():.1f} %)",
+    ]
+    if visited.size == 0:
+        return [*lines, "no state visited yet: nothing learned"]
+    best = q[visited].argmax(axis=1)
+    best_q = q[visited, best]
+    order = {"visits": np.argsort(-state_visits[visited], kind="stable"),
+             "q": np.argsort(-best_q, kind="stable"),
+             "state": np.arange(visited.size)}[sort]
+    shown = order if limit <= 0 else order[:limit]
+    rows = []
+    for i in shown:
+        bins = _unindex(int(visited[i]), dims)
+        names = [bin_names[f][b] for f, b in enumerate(bins)]
+        tried = int((visits[visited[i]] > 0).sum())
+        rows.append([*names, actions[best[i]], f"{best_q[i]:.3f}", str(int(state_visits[visited[i]])),
+                     f"{tried}/{n_actions}"])
+    header = [*factors, "best action", "Q", "visits", "tried"]
+    widths = [max(len(h), *(len(r[c]) for r in rows)) for c, h in enumerate(header)]
+    lines.append("  ".join(h.ljust(w) for h, w in zip(header, widths, strict=True)).rstrip())
+    lines += ["  ".join(v.ljust(w) for v, w in zip(r, widths, strict=True)).rstrip() for r in rows]
+    if len(shown) < visited.size:
+        lines.append(f"({len(shown)} of {visited.size} visited states shown, sorted by {sort}; --limit 0 shows all)")
+    return lines

@@ -1,0 +1,133 @@
+"""ControllerStage driving real simulated drivers on a ManualClock: decisions, applies,
+taps, hints, a failing driver, and the Q-table surviving a restart."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import pytest
+
+from respecd.clock import ManualClock
+from respecd.config import load_profile
+from respecd.control.stage import ControllerStage
+from respecd.drivers.base import DriverContext
+from respecd.drivers.sim import SimDriver
+from respecd.errors import DriverIOError
+from respecd.messages import Bundle, Decision, Health, Percept, SensorConfig, SyncStats
+from respecd.queues import DropOldestQueue
+from respecd.sim.world import SimulationConfig
+
+TICK_S = 0.1  # synchronizer tick of the test pipeline (10 Hz)
+
+
+class BrokenRadar(SimDriver):
+    """A simulated radar whose CLI port stopped answering: every apply fails."""
+
+    async def apply(self, request: SensorConfig) -> SensorConfig:
+        raise DriverIOError("radar CLI did not answer 'Done'")
+
+
+class Rig:
+    """Real SimDrivers + the stage; the test moves the clock and plays the synchronizer."""
+
+    def __init__(self, tmp_path: Path, policy: str, broken_radar: bool = False) -> None:
+        profile = load_profile("builtin:sim-rover")
+        self.clock = ManualClock()
+        context = DriverContext(seed=5, simulation=SimulationConfig(
+            scenarios=["good-light-static", "poor-light-static"], scenario_duration_s=3.0))
+        self.drivers: dict[str, SimDriver] = {}
+        for sensor in profile.sensors:
+            if sensor.modality in ("rgb", "thermal", "radar"):
+                cls = BrokenRadar if broken_radar and sensor.modality == "radar" else SimDriver
+                self.drivers[sensor.name] = cls(sensor.model_copy(update={"render_in_thread": "never"}),
+                                                self.clock, context)
+        config = profile.controller.model_copy(update={
+            "policy": policy, "system_probe": False, "min_dwell_s": 0.0, "save_every": 1000})
+        self.stage = ControllerStage(config, profile, self.drivers, self.clock, tmp_path)
+        self.decisions: list[Decision] = []
+        self.hints = 0
+        self.stage.on_decision.append(self.decisions.append)
+        self.stage.perception_hint = self._hint
+        self.percepts: DropOldestQueue[Percept] = DropOldestQueue(4, "percepts")
+        self.latest: dict = {}
+
+    def _hint(self) -> None:
+        self.hints += 1
+
+    async def _read(self, driver: SimDriver) -> None:
+        async for frame in driver.frames():
+            self.latest[frame.modality] = frame
+
+    async def run(self, seconds: float) -> None:
+        for driver in self.drivers.values():
+            await driver.start()
+        readers = [asyncio.create_task(self._read(d), name=f"read-{n}") for n, d in self.drivers.items()]
+        stage = asyncio.create_task(self.stage.run(self.percepts), name="controller")
+        try:
+            for _ in range(round(seconds / TICK_S)):
+                self.clock.advance(TICK_S)
+                for _ in range(20):
+                    await asyncio.sleep(0)
+                conf = 0.8 if "thermal" in self.latest else 0.2
+                bundle = Bundle(self.clock.now(), dict(self.latest), SyncStats(10.0, 1.0, 0.0, Health.GOOD))
+                self.percepts.put(Percept(self.clock.now(), (), conf, {"rgb": 0.3, "thermal": 0.7}, 0.01, bundle))
+            await asyncio.sleep(0.05)  # let the last decision's apply finish
+        finally:
+            stage.cancel()
+            await asyncio.gather(stage, return_exceptions=True)
+            await self.stage.close()
+            for driver in self.drivers.values():
+                await driver.stop()
+            await asyncio.gather(*readers)
+
+
+async def test_learn_run_decides_applies_and_persists(tmp_path: Path) -> None:
+    rig = Rig(tmp_path, "learn")
+    await rig.run(6.0)
+    assert len(rig.decisions) >= 5
+    assert rig.hints >= len(rig.decisions)
+    assert rig.stage.last is rig.decisions[-1]
+    names = [slot.name for slot in rig.stage.controller.space.slots]
+    for name, applied in zip(names, rig.decisions[-1].configs, strict=True):
+        if name in rig.drivers:
+            assert rig.drivers[name].applied == applied  # what the drivers really run
+    assert {"quality", "power", "latency", "switch", "reward", "td_error"} <= set(rig.decisions[-1].terms)
+    assert len(rig.decisions[-1].q_values) == rig.stage.controller.space.n
+    table = rig.stage.controller.table
+    assert table.updates == len(rig.decisions) - 1
+    assert rig.stage.table_path.exists()
+
+    again = Rig(tmp_path, "exploit")
+    await again.stage._prepare()
+    assert again.stage.controller.table.updates == table.updates
+    assert (again.stage.controller.table.q == table.q).all()
+
+
+async def test_scene_turning_dark_moves_the_heuristic_to_thermal(tmp_path: Path) -> None:
+    rig = Rig(tmp_path, "heuristic")
+    await rig.run(6.0)  # 3 s of good light, then 3 s of poor light
+    states = [rig.stage.controller.states.names(d.state)["illumination"] for d in rig.decisions]
+    assert states[-1] == "dark" and "dark" not in states[:2]
+    thermal = rig.drivers["thermal"].applied
+    rgb = rig.drivers["rgb"].applied
+    assert thermal.resolution == (320, 240)
+    assert rgb.resolution == (640, 360)
+    assert not (tmp_path / "qtable-sim-rover.npz").exists()  # baselines keep no table
+
+
+async def test_a_failing_driver_is_logged_and_the_rest_are_configured(tmp_path: Path) -> None:
+    rig = Rig(tmp_path, "static", broken_radar=True)
+    radar_before = rig.drivers["radar"].applied
+    await rig.run(2.0)
+    assert rig.decisions
+    assert rig.drivers["rgb"].applied.resolution == (1280, 720) and rig.drivers["rgb"].applied.rate_hz == 30.0
+    assert rig.drivers["thermal"].applied.resolution == (320, 240)
+    assert rig.drivers["radar"].applied == radar_before  # unchanged, retried at every decision
+
+
+@pytest.mark.parametrize("policy", ["learn", "static"])
+async def test_close_before_run_does_not_clobber_a_saved_table(tmp_path: Path, policy: str) -> None:
+    rig = Rig(tmp_path, policy)
+    await rig.stage.close()
+    assert list(tmp_path.iterdir()) == []
