@@ -8,5 +8,6 @@ from __future__ import annotations
 
 BENCHES: dict[str, str] = {
     "pipeline": "respecd.bench.pipeline",
+    "controller": "respecd.bench.controller",
     "sim": "respecd.bench.sim",
 }
