@@ -1,10 +1,10 @@
 """Simulated IWR6843 point cloud: what the out-of-box demo would report for the scene.
 
-The two chirp presets are the real xWR68xx SDK 3.6 visualizer configurations
-(``Demo_Visualizer_Best_Range.cfg`` and ``..._Best_Velocity_Res.cfg``, see SENSORS.md 2.4);
-the four figures follow from the standard FMCW relations. The frame rate couples them: the
-active frame time (loops x TX x chirp time) must fit in the frame period, so at high rates
-the velocity preset halves its loops and loses velocity resolution.
+The chirp for (mode, rate) comes from the radar driver's own lookup table
+(``respecd.radar.chirp``: TI's xWR68xx visualizer presets refitted to the frame period), so
+the simulated and the real radar trade range against velocity identically: the range
+preset reaches ~50 m but folds speeds beyond +-1 m/s; the velocity preset resolves 0.05 m/s
+up to +-3.2 m/s but its CFAR stops at ~11 m; at high rates fewer loops fit the frame.
 """
 
 from __future__ import annotations
@@ -15,44 +15,25 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from respecd.radar.chirp import UART_BYTES_PER_S, lookup
 from respecd.sim.camera import blocked_mask
 from respecd.sim.state import SceneState
 
-C = 3e8
-F0_HZ = 60e9
-CFAR_FOV_SHARE = 0.89  # the demo cfgs' cfarFov sits at 89 % of the unambiguous range
 AZIMUTH_FOV_DEG, ELEVATION_FOV_DEG = 60.0, 20.0  # IWR6843ISK antenna field of view (half angles)
-UART_BYTES_PER_S = 92160 * 0.8  # 921600 baud, 10 bits per byte, 80 % usable
-POINT_BYTES, FRAME_OVERHEAD_BYTES = 20, 100  # float32 x,y,z,v + int16 snr,noise; header and TLV headers
+POINT_BYTES, FRAME_OVERHEAD_BYTES = 20, 128  # TLV 1 (16 B) + TLV 7 (4 B) per point; header and other TLVs
 CFAR_THRESHOLD_DB = 12.0
 SNR_AT_3M_DB = {"range": 36.0, "velocity": 39.0}  # velocity preset integrates 2x more samples per frame
-
-
-@dataclass(frozen=True, slots=True)
-class Chirp:
-    idle_us: float
-    ramp_us: float
-    slope_mhz_us: float
-    adc_samples: int
-    sample_rate_ksps: float
-    tx: int
-    loops: int
-
-
-CHIRPS: dict[str, Chirp] = {
-    "range": Chirp(388.0, 28.49, 30.0, 256, 12499.0, 3, 16),
-    "velocity": Chirp(115.0, 15.0, 100.0, 64, 9142.0, 3, 128),
-}
 
 
 @dataclass(frozen=True, slots=True)
 class RadarFigures:
     range_res_m: float
     max_range_m: float
+    cfar_range_m: float  # detections stop here (cfarFovCfg)
     max_velocity_mps: float
     velocity_res_mps: float
     loops: int
-    max_points: int  # what the UART can carry per frame at this rate
+    max_points: int  # what the UART carries per frame at this rate
 
     def as_dict(self) -> dict[str, float]:
         return {k: getattr(self, k) for k in self.__dataclass_fields__}
@@ -60,18 +41,18 @@ class RadarFigures:
 
 @functools.lru_cache(maxsize=256)
 def radar_figures(mode: str, rate_hz: float) -> RadarFigures:
-    """The four FMCW figures of ``mode`` at ``rate_hz`` (SENSORS.md 2.4 formulas)."""
-    c = CHIRPS[mode]
-    chirp_s = (c.idle_us + c.ramp_us) * 1e-6
-    loops = c.loops
-    while loops > 1 and loops * c.tx * chirp_s >= 1.0 / rate_hz:  # active frame time must fit the period
-        loops //= 2
-    range_res = C * c.sample_rate_ksps * 1e3 / (2 * c.slope_mhz_us * 1e12 * c.adc_samples)
-    max_range = 300 * 0.9 * c.sample_rate_ksps / (2 * c.slope_mhz_us * 1e3)
-    v_max = C / (4 * F0_HZ * chirp_s * c.tx)
-    v_res = C / (2 * F0_HZ * chirp_s * loops * c.tx)
-    points = int((UART_BYTES_PER_S / rate_hz - FRAME_OVERHEAD_BYTES) // POINT_BYTES)
-    return RadarFigures(range_res, max_range, v_max, v_res, loops, max(points, 1))
+    """The figures of the chirp the radar driver would send for ``mode`` at ``rate_hz``."""
+    p = lookup(mode, rate_hz)  # type: ignore[arg-type]
+    points = int((0.8 * UART_BYTES_PER_S / rate_hz - FRAME_OVERHEAD_BYTES) // POINT_BYTES)  # 80 % of the link
+    return RadarFigures(
+        p.range_resolution_m,
+        p.max_range_m,
+        p.cfar_range_m,
+        p.max_velocity_mps,
+        p.velocity_resolution_mps,
+        p.loops,
+        max(points, 1),
+    )
 
 
 def _wrap(v: np.ndarray, v_max: float) -> np.ndarray:
@@ -125,7 +106,7 @@ def _measure(cloud: np.ndarray, fig: RadarFigures, rng: np.random.Generator) -> 
     az = np.arctan2(x, z) + np.radians(rng.normal(0, 3.0, len(x)))
     el = np.arcsin(np.clip(-y / np.maximum(rng_m, 1e-6), -1, 1)) + np.radians(rng.normal(0, 6.0, len(x)))
     rng_m = (np.round(rng_m / fig.range_res_m) + rng.normal(0, 0.3, len(x))) * fig.range_res_m
-    keep = (snr > CFAR_THRESHOLD_DB) & (rng_m > 0.2) & (rng_m < CFAR_FOV_SHARE * fig.max_range_m)
+    keep = (snr > CFAR_THRESHOLD_DB) & (rng_m > 0.2) & (rng_m < fig.cfar_range_m)
     keep &= (np.abs(az) < math.radians(AZIMUTH_FOV_DEG)) & (np.abs(el) < math.radians(ELEVATION_FOV_DEG))
     v = _wrap(np.round(v / fig.velocity_res_mps) * fig.velocity_res_mps, fig.max_velocity_mps)
     # TI frame: x right, y boresight, z up
@@ -135,7 +116,7 @@ def _measure(cloud: np.ndarray, fig: RadarFigures, rng: np.random.Generator) -> 
 
 def _false_alarms(fig: RadarFigures, rng: np.random.Generator) -> np.ndarray:
     n = int(rng.poisson(1.5))
-    rng_m = rng.uniform(0.5, CFAR_FOV_SHARE * fig.max_range_m, n)
+    rng_m = rng.uniform(0.5, fig.cfar_range_m, n)
     az = np.radians(rng.uniform(-AZIMUTH_FOV_DEG, AZIMUTH_FOV_DEG, n))
     v = rng.uniform(-fig.max_velocity_mps, fig.max_velocity_mps, n)
     snr = rng.uniform(CFAR_THRESHOLD_DB, CFAR_THRESHOLD_DB + 3, n)
