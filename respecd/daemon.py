@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Protocol
@@ -29,6 +30,10 @@ from respecd.sync import HealthThresholds, Synchronizer
 log = structlog.get_logger(__name__)
 
 SHUTDOWN_TIMEOUT_S = 1.5  # SIGTERM to exit must stay within ~2 s
+# Worker threads (renders, decoding, torch glue) hold the GIL for up to the switch interval
+# before the loop thread may run; CPython's 5 ms default alone would break the 30 Hz tick's
+# jitter budget, so the daemon asks for 1 ms.
+GIL_SWITCH_INTERVAL_S = 0.001
 
 
 class Tap(Protocol):
@@ -142,6 +147,7 @@ class Daemon:
     async def run(self, duration: float | None = None, stop: asyncio.Event | None = None) -> None:
         """Run until ``duration`` seconds have passed on the clock or ``stop`` is set."""
         stop = stop or asyncio.Event()
+        sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
         self._build_stages()
         for name, driver in self.drivers.items():
             self._spawn(f"driver:{name}", supervise(f"driver:{name}", driver_runner(driver, self._sink(name))))
