@@ -1,0 +1,232 @@
+"""FLIR One USB frame protocol: reassemble EP 0x85 bulk reads into frames.
+
+The camera streams frames on bulk endpoint 0x85, each a 28-byte little-endian header
+(magic ``EF BE 00 00``, a type word, FrameSize, ThermalSize, JpgSize, StatusSize, and a
+word that repeats when the device resends a frame) followed by the raw thermal block, the
+visible-camera JPEG and a NUL-terminated JSON status. USB reads split a frame anywhere, so
+``FrameAssembler.feed`` buffers bytes and frames by the header's sizes; after a bad magic it
+scans forward to the next magic (flirone-v4l2 only reset and waited, which loses more).
+
+Thermal layouts, told apart by the thermal block's size (SENSORS.md §3):
+  * 160x120 (One Pro / Gen 2): per image row two 164-byte VoSPI lines, each a 4-byte
+    id+CRC then 80 little-endian uint16 pixels; the right half sits 4 bytes later.
+  * 80x60 (Gen 3 / Pro LT): one 164-byte line per row, 4-byte id+CRC then 80 pixels;
+    extra lines after row 59 are Lepton telemetry.
+
+No I/O and no numpy copies beyond the decoded images: the assembler runs in the driver's
+worker thread and in ``respecd bench drivers``.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+MAGIC = b"\xef\xbe\x00\x00"
+HEADER = struct.Struct("<4s6I")  # magic, type, frame, thermal, jpeg, status, repeat-word
+HEADER_SIZE = HEADER.size  # 28 bytes
+MAX_FRAME_SIZE = 1 << 20  # flirone-v4l2's BUF85SIZE, "size got from android app"
+
+LINE_BYTES = 164  # one VoSPI line: u16 id, u16 CRC, 80 x u16 pixels
+LINE_WORDS = LINE_BYTES // 2
+PRO_SIZE = (160, 120)  # (width, height)
+GEN3_SIZE = (80, 60)
+PRO_MIN_BYTES = PRO_SIZE[1] * 2 * LINE_BYTES  # 39360: two lines per 160-pixel row
+GEN3_MIN_BYTES = GEN3_SIZE[1] * LINE_BYTES  # 9840
+FFC_SHUTTER_STATE = "FFC"  # flirone-v4l2 checks "FFC" at status offset 17, i.e. shutterState
+
+
+class ThermalLayoutError(ValueError):
+    """The thermal block is too short for either known layout."""
+
+
+@dataclass(frozen=True, slots=True)
+class FrameHeader:
+    frame_size: int
+    thermal_size: int
+    jpeg_size: int
+    status_size: int
+    kind: int
+    repeat_word: int
+
+    @classmethod
+    def parse(cls, raw: bytes | bytearray | memoryview) -> FrameHeader | None:
+        """The header at the start of ``raw``, or None when the magic or the sizes are wrong."""
+        magic, kind, frame, thermal, jpeg, status, word = HEADER.unpack_from(raw)
+        if magic != MAGIC or frame > MAX_FRAME_SIZE or thermal + jpeg + status > frame:
+            return None
+        return cls(frame, thermal, jpeg, status, kind, word)
+
+
+@dataclass(frozen=True, slots=True)
+class FlirFrame:
+    """One decoded FLIR One frame."""
+
+    header: FrameHeader
+    thermal: np.ndarray  # uint16 (H, W) raw counts, little-endian decoded
+    jpeg: bytes  # visible-camera JPEG as sent (may end in zero padding instead of FF D9)
+    status: dict[str, Any] | None  # the JSON status, None when it did not parse
+    telemetry: bytes  # thermal lines after the image (Lepton telemetry), raw
+    ffc: bool  # shutter closed for a flat-field correction: the image is not the scene
+    repeat: bool  # same content as the frame before (the device resends frames)
+
+    @property
+    def layout(self) -> tuple[int, int]:
+        return (self.thermal.shape[1], self.thermal.shape[0])
+
+
+@dataclass
+class AssemblerStats:
+    frames: int = 0
+    bytes_in: int = 0
+    bytes_skipped: int = 0  # discarded while hunting for a magic
+    resyncs: int = 0  # times the buffer did not start with a valid header
+    truncated: int = 0  # partial frames abandoned because a new frame began
+    bad_thermal: int = 0  # frames dropped because the thermal block fit no layout
+    bad_status: int = 0  # status blocks that were not JSON
+    bad_line_ids: int = 0  # 80x60 frames whose VoSPI line numbers were out of order
+    repeats: int = 0
+    ffc: int = 0
+    layouts: dict[str, int] = field(default_factory=dict)
+
+
+def decode_thermal(block: bytes | memoryview) -> tuple[np.ndarray, bytes, bool]:
+    """(image uint16 (H, W), telemetry bytes, line ids in order) for either layout."""
+    size = len(block)
+    if size >= PRO_MIN_BYTES:
+        rows = np.frombuffer(block, dtype="<u2", count=PRO_MIN_BYTES // 2).reshape(PRO_SIZE[1], 2 * LINE_WORDS)
+        # each row: [id, crc, 80 px | id, crc, 80 px] -> pixels x<80 at word 2+x, x>=80 at word 4+x
+        image = np.hstack((rows[:, 2:LINE_WORDS], rows[:, LINE_WORDS + 2 :])).astype(np.uint16)
+        return image, bytes(block[PRO_MIN_BYTES:]), True
+    if size >= GEN3_MIN_BYTES:
+        lines = np.frombuffer(block, dtype="<u2", count=GEN3_MIN_BYTES // 2).reshape(GEN3_SIZE[1], LINE_WORDS)
+        # the low 12 bits of a VoSPI id are the line number; the top bits vary (segment/ttt)
+        ordered = bool(np.array_equal(lines[:, 0] & 0x0FFF, np.arange(GEN3_SIZE[1])))
+        return lines[:, 2:].astype(np.uint16), bytes(block[GEN3_MIN_BYTES:]), ordered
+    raise ThermalLayoutError(f"thermal block of {size} bytes fits neither 160x120 nor 80x60")
+
+
+def parse_status(block: bytes | memoryview) -> dict[str, Any] | None:
+    """The status JSON (NUL-terminated ASCII), or None when it is not a JSON object."""
+    text = bytes(block).split(b"\x00", 1)[0]
+    try:
+        status = json.loads(text.decode("ascii", errors="replace"))
+    except ValueError:
+        return None
+    return status if isinstance(status, dict) else None
+
+
+class FrameAssembler:
+    """Turns bulk reads (any split) into ``FlirFrame``s; never raises on bad bytes."""
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+        self._last: tuple[FrameHeader, bytes] | None = None
+        self.stats = AssemblerStats()
+
+    def feed(self, chunk: bytes | bytearray | memoryview) -> list[FlirFrame]:
+        """Add one USB read; return the frames it completed (usually zero or one)."""
+        self.stats.bytes_in += len(chunk)
+        if self._buf and _starts_frame(chunk):
+            # the device began a new frame: what we hold can never complete (flirone-v4l2 rule)
+            if _starts_frame(self._buf):
+                self.stats.truncated += 1
+            else:
+                self.stats.bytes_skipped += len(self._buf)
+            self._buf.clear()
+        self._buf += chunk
+        frames: list[FlirFrame] = []
+        while True:
+            header = self._sync()
+            if header is None or len(self._buf) < HEADER_SIZE + header.frame_size:
+                return frames
+            end = HEADER_SIZE + header.frame_size
+            body = bytes(self._buf[HEADER_SIZE:end])
+            del self._buf[:end]
+            frame = self._decode(header, body)
+            if frame is not None:
+                frames.append(frame)
+
+    def _sync(self) -> FrameHeader | None:
+        """Drop bytes until the buffer starts with a valid header; None if more bytes are needed."""
+        while len(self._buf) >= HEADER_SIZE:
+            header = FrameHeader.parse(self._buf)
+            if header is not None:
+                return header
+            self.stats.resyncs += 1
+            at = self._buf.find(MAGIC, 1)
+            skip = at if at > 0 else len(self._buf) - (len(MAGIC) - 1)  # keep a possibly split magic
+            self.stats.bytes_skipped += skip
+            del self._buf[:skip]
+        if self._buf and not MAGIC.startswith(bytes(self._buf[: len(MAGIC)])):
+            at = self._buf.find(MAGIC, 1)
+            skip = at if at > 0 else max(1, len(self._buf) - (len(MAGIC) - 1))
+            self.stats.bytes_skipped += skip
+            del self._buf[:skip]
+        return None
+
+    def _decode(self, header: FrameHeader, body: bytes) -> FlirFrame | None:
+        view = memoryview(body)
+        thermal_end = header.thermal_size
+        jpeg_end = thermal_end + header.jpeg_size
+        try:
+            image, telemetry, ordered = decode_thermal(view[:thermal_end])
+        except ThermalLayoutError:
+            self.stats.bad_thermal += 1
+            return None
+        status = parse_status(view[jpeg_end : jpeg_end + header.status_size])
+        content = body[:jpeg_end]
+        repeat = self._last is not None and self._last[0].repeat_word == header.repeat_word and self._last[1] == content
+        self._last = (header, content)
+        frame = FlirFrame(
+            header=header,
+            thermal=image,
+            jpeg=body[thermal_end:jpeg_end],
+            status=status,
+            telemetry=telemetry,
+            ffc=bool(status and status.get("shutterState") == FFC_SHUTTER_STATE),
+            repeat=repeat,
+        )
+        self._count(frame, ordered, status is None)
+        return frame
+
+    def _count(self, frame: FlirFrame, ordered: bool, bad_status: bool) -> None:
+        s = self.stats
+        s.frames += 1
+        s.bad_status += bad_status
+        s.bad_line_ids += not ordered
+        s.repeats += frame.repeat
+        s.ffc += frame.ffc
+        key = f"{frame.layout[0]}x{frame.layout[1]}"
+        s.layouts[key] = s.layouts.get(key, 0) + 1
+
+
+def _starts_frame(chunk: bytes | bytearray | memoryview) -> bool:
+    return len(chunk) >= HEADER_SIZE and FrameHeader.parse(chunk) is not None
+
+
+def build_frame(
+    thermal_block: bytes, jpeg: bytes, status: dict[str, Any] | bytes, *, kind: int = 1, repeat_word: int = 0
+) -> bytes:
+    """Encode one frame as the device sends it (for synthesized fixtures and benchmarks)."""
+    status_bytes = status if isinstance(status, bytes) else json.dumps(status).encode("ascii") + b"\x00"
+    size = len(thermal_block) + len(jpeg) + len(status_bytes)
+    header = HEADER.pack(MAGIC, kind, size, len(thermal_block), len(jpeg), len(status_bytes), repeat_word)
+    return header + thermal_block + jpeg + status_bytes
+
+
+def encode_pro_thermal(image: np.ndarray, line_ids: bool = True) -> bytes:
+    """The 160x120 layout of ``image`` (uint16 (120, 160)): two VoSPI lines per row."""
+    if image.shape != (PRO_SIZE[1], PRO_SIZE[0]):
+        raise ValueError(f"expected a (120, 160) image, got {image.shape}")
+    rows = np.zeros((PRO_SIZE[1], 2 * LINE_WORDS), dtype="<u2")
+    if line_ids:
+        rows[:, 0] = np.arange(0, 2 * PRO_SIZE[1], 2)
+        rows[:, LINE_WORDS] = np.arange(1, 2 * PRO_SIZE[1], 2)
+    rows[:, 2:LINE_WORDS] = image[:, :80]
+    rows[:, LINE_WORDS + 2 :] = image[:, 80:]
+    return rows.tobytes()

@@ -1,0 +1,187 @@
+"""FLIR One frame assembler on the real Gen-3 capture (109 EP 0x85 reads, 20 frames) and on
+synthesized 160x120 frames, checked against the flirone-v4l2 pixel formula."""
+
+from __future__ import annotations
+
+import random
+import struct
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from respecd.drivers.flirone_protocol import (
+    HEADER_SIZE,
+    FrameAssembler,
+    build_frame,
+    encode_pro_thermal,
+)
+from respecd.drivers.flirone_usb import RecordedTransport
+
+CAPTURE = "flirone_pro_gen3_usb_moezemara"
+
+
+@pytest.fixture
+def capture(shared_data: Path) -> Path:
+    return shared_data / CAPTURE
+
+
+@pytest.fixture
+def chunks(capture: Path) -> list[bytes]:
+    return RecordedTransport.from_path(capture / "test_chunks_hex").chunks
+
+
+def feed_all(chunks: list[bytes]) -> tuple[list, FrameAssembler]:
+    assembler = FrameAssembler()
+    frames = []
+    for chunk in chunks:
+        frames.extend(assembler.feed(chunk))
+    return frames, assembler
+
+
+def headers_in(stream: bytes) -> list[tuple[int, ...]]:
+    """Walk the concatenated capture by FrameSize, independently of the assembler."""
+    out, at = [], 0
+    while at < len(stream):
+        fields = struct.unpack_from("<4s6I", stream, at)
+        assert fields[0] == b"\xef\xbe\x00\x00"
+        out.append(fields[2:6])
+        at += HEADER_SIZE + fields[2]
+    return out
+
+
+def test_real_capture_gives_its_20_frames(chunks: list[bytes], capture: Path) -> None:
+    assert len(chunks) == 108  # 109 reads, the first one empty
+    frames, assembler = feed_all(chunks)
+    stream = (capture / "usb_stream_concat.bin").read_bytes()
+    expected = headers_in(stream)
+    assert len(frames) == len(expected) == 20
+    for frame, (size, thermal, jpeg, status) in zip(frames, expected, strict=True):
+        h = frame.header
+        assert (h.frame_size, h.thermal_size, h.jpeg_size, h.status_size) == (size, thermal, jpeg, status)
+        assert frame.thermal.shape == (60, 80) and frame.thermal.dtype == np.uint16
+        assert 3000 <= frame.thermal.min() and frame.thermal.max() < 1 << 14  # 14-bit Lepton counts
+        assert 3500 <= np.median(frame.thermal) <= 4100  # a room-temperature scene, not telemetry words
+        assert frame.status is not None and frame.status["shutterState"] == "ON"
+        assert not frame.ffc
+    s = assembler.stats
+    assert (s.frames, s.resyncs, s.bytes_skipped, s.truncated, s.bad_line_ids) == (20, 0, 0, 0, 0)
+    assert [i for i, f in enumerate(frames) if f.repeat] == [1, 11]  # the device resent frames 0 and 10
+    assert s.layouts == {"80x60": 20}
+
+
+def test_real_capture_jpegs_decode(chunks: list[bytes]) -> None:
+    frames, _ = feed_all(chunks)
+    for frame in frames[:4]:
+        image = cv2.imdecode(np.frombuffer(frame.jpeg, np.uint8), cv2.IMREAD_COLOR)
+        assert image is not None and image.shape == (1080, 1440, 3)
+
+
+def test_gen3_pixels_match_the_line_layout(chunks: list[bytes], capture: Path) -> None:
+    frames, _ = feed_all(chunks)
+    raw = (capture / "usb_stream_concat.bin").read_bytes()
+    # SOURCE.md: 63 lines of 164 bytes = u16 id, u16 CRC, 80 x u16 LE; rows 0-59 are the image
+    for y in (0, 17, 59):
+        line = raw[HEADER_SIZE + 164 * y : HEADER_SIZE + 164 * (y + 1)]
+        assert struct.unpack_from("<H", line)[0] & 0x0FFF == y
+        assert list(frames[0].thermal[y]) == list(struct.unpack_from("<80H", line, 4))
+    assert len(frames[0].telemetry) == 3 * 164
+
+
+def test_whole_stream_and_random_splits_give_the_same_frames(chunks: list[bytes], capture: Path) -> None:
+    reference, _ = feed_all(chunks)
+    stream = (capture / "usb_stream_concat.bin").read_bytes()
+    whole, _ = feed_all([stream])
+    rng = random.Random(5)
+    pieces, at = [], 0
+    while at < len(stream):
+        step = rng.choice((1, 3, 27, 29, 500, 4096, 40000))
+        pieces.append(stream[at : at + step])
+        at += step
+    split, assembler = feed_all(pieces)
+    for frames in (whole, split):
+        assert len(frames) == 20
+        for a, b in zip(frames, reference, strict=True):
+            assert np.array_equal(a.thermal, b.thermal) and a.jpeg == b.jpeg and a.status == b.status
+    assert assembler.stats.bytes_skipped == 0
+
+
+def test_split_header_is_reassembled(chunks: list[bytes]) -> None:
+    split: list[bytes] = []
+    for i, chunk in enumerate(chunks):
+        if len(chunk) == HEADER_SIZE:
+            cut = 1 + i % 27  # every position inside the 28-byte header, the magic included
+            split += [chunk[:cut], chunk[cut:]]
+        else:
+            split.append(chunk)
+    frames, assembler = feed_all(split)
+    assert len(frames) == 20
+    assert assembler.stats.resyncs == 0
+
+
+def test_bad_magic_loses_one_frame_and_resyncs(chunks: list[bytes]) -> None:
+    headers = [i for i, c in enumerate(chunks) if len(c) == HEADER_SIZE]
+    damaged = list(chunks)
+    damaged[headers[5]] = b"\xde\xad\xbe\xef" + chunks[headers[5]][4:]
+    frames, assembler = feed_all(damaged)
+    reference, _ = feed_all(chunks)
+    assert len(frames) == 19
+    assert assembler.stats.resyncs >= 1 and assembler.stats.bytes_skipped > 0
+    kept = reference[:5] + reference[6:]
+    assert all(np.array_equal(a.thermal, b.thermal) for a, b in zip(frames, kept, strict=True))
+
+
+def test_garbage_between_frames_is_skipped(chunks: list[bytes]) -> None:
+    headers = [i for i, c in enumerate(chunks) if len(c) == HEADER_SIZE]
+    garbage = bytes(range(256)) * 3 + b"\xef\xbe"  # ends in half a magic
+    noisy = chunks[: headers[3]] + [garbage] + chunks[headers[3] :]
+    frames, assembler = feed_all(noisy)
+    assert len(frames) == 20
+    assert assembler.stats.bytes_skipped == len(garbage)
+
+
+def test_lost_read_drops_only_that_frame(chunks: list[bytes]) -> None:
+    big = [i for i, c in enumerate(chunks) if len(c) == 32768]
+    frames, assembler = feed_all(chunks[: big[4]] + chunks[big[4] + 1 :])
+    assert len(frames) == 19
+    assert assembler.stats.truncated == 1
+
+
+def pro_image() -> np.ndarray:
+    y, x = np.mgrid[0:120, 0:160]
+    return (3000 + 7 * y + x + 500 * (x >= 80)).astype(np.uint16)
+
+
+def test_pro_layout_decodes_from_a_synthesized_frame() -> None:
+    image = pro_image()
+    ok, jpeg = cv2.imencode(".jpg", np.full((480, 640, 3), 90, np.uint8))
+    assert ok
+    raw = build_frame(encode_pro_thermal(image), jpeg.tobytes(), {"shutterState": "FFC", "ffcState": "x"})
+    (frame,) = FrameAssembler().feed(raw)
+    assert frame.layout == (160, 120)
+    assert np.array_equal(frame.thermal, image)
+    assert frame.ffc
+    # flirone-v4l2: pos = 2*(y*164 + x) + 32, 4 bytes further when x >= 80, over the whole buffer
+    for y, x in ((0, 0), (5, 79), (5, 80), (119, 159), (60, 100)):
+        pos = 2 * (y * 164 + x) + 32 + (4 if x >= 80 else 0)
+        assert frame.thermal[y, x] == raw[pos] + 256 * raw[pos + 1]
+    assert cv2.imdecode(np.frombuffer(frame.jpeg, np.uint8), cv2.IMREAD_COLOR).shape == (480, 640, 3)
+
+
+def test_short_thermal_block_and_bad_status_are_counted() -> None:
+    good = build_frame(encode_pro_thermal(pro_image()), b"\xff\xd8\xff\xd9", b"not json\x00")
+    short = build_frame(b"\x00" * 1000, b"\xff\xd8\xff\xd9", {"shutterState": "ON"})
+    assembler = FrameAssembler()
+    frames = assembler.feed(short) + assembler.feed(good)
+    assert len(frames) == 1 and frames[0].status is None
+    assert assembler.stats.bad_thermal == 1 and assembler.stats.bad_status == 1
+
+
+def test_oversized_header_is_rejected_not_buffered() -> None:
+    bogus = struct.pack("<4s6I", b"\xef\xbe\x00\x00", 1, 50_000_000, 10, 10, 10, 0)
+    good = build_frame(encode_pro_thermal(pro_image()), b"\xff\xd8", {"shutterState": "ON"})
+    assembler = FrameAssembler()
+    frames = assembler.feed(bogus + b"\x00" * 100) + assembler.feed(good)
+    assert len(frames) == 1
+    assert assembler.stats.resyncs >= 1

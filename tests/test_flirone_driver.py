@@ -1,0 +1,193 @@
+"""FLIR One driver: recorded EP 0x85 reads through the transport seam, the worker thread,
+decimation, the rate cap, upscaling, FFC flags, unplug, and the missing-libusb path."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pydantic
+import pytest
+
+from respecd.clock import MonotonicClock
+from respecd.drivers import DRIVERS, driver_class
+from respecd.drivers.flirone import FlirOneConfig, FlirOneDriver
+from respecd.drivers.flirone_protocol import build_frame, encode_pro_thermal
+from respecd.drivers.flirone_usb import RecordedTransport
+from respecd.errors import DriverUnavailableError
+from respecd.messages import Frame, SensorConfig
+
+
+@pytest.fixture
+def chunks(shared_data: Path) -> list[bytes]:
+    return RecordedTransport.from_path(shared_data / "flirone_pro_gen3_usb_moezemara" / "test_chunks_hex").chunks
+
+
+def config(**kw) -> FlirOneConfig:
+    kw.setdefault("realtime", False)  # recorded reads timed by the camera's own clock
+    return FlirOneConfig(name="thermal", **kw)
+
+
+async def collect(driver: FlirOneDriver, limit: int = 1000) -> list[Frame]:
+    frames: list[Frame] = []
+    await driver.start()
+    try:
+        async with asyncio.timeout(20):
+            async for frame in driver.frames():
+                frames.append(frame)
+                if len(frames) >= limit:
+                    break
+    finally:
+        await driver.stop()
+    return frames
+
+
+def worker_threads() -> list[str]:
+    return [t.name for t in threading.enumerate() if t.name.startswith("respecd-")]
+
+
+def test_registered() -> None:
+    assert DRIVERS["flirone"][0] == "flirone"
+    assert driver_class("flirone") is FlirOneDriver
+
+
+async def test_real_capture_through_the_driver(chunks: list[bytes]) -> None:
+    driver = FlirOneDriver(config(resolution=(80, 60)), MonotonicClock(), transport=RecordedTransport(chunks))
+    assert driver.capabilities.resolutions[0] == (160, 120)  # assumed One Pro until a frame says otherwise
+    frames = await collect(driver)
+    # 20 frames in 1.97 s of camera time; the two resent ones arrive 35-60 ms after their twin,
+    # inside the 9 Hz cap, so the decimator lets 18 through
+    assert len(frames) == 18
+    assert all(f.data.shape == (60, 80) and f.data.dtype == np.uint16 for f in frames)
+    assert [f.seq for f in frames] == list(range(18))
+    gaps = np.diff([f.t for f in frames])
+    assert gaps.min() >= 0.75 / 9.0
+    assert driver.capabilities.resolutions == ((80, 60), (160, 120), (320, 240))
+    assert driver.capabilities.upscaled == ((160, 120), (320, 240))
+    assert driver.applied.resolution == (80, 60)
+    assert not any("upscaled" in n for n in driver.applied.notes)
+    assert not any(f.meta["ffc"] for f in frames)
+    assert frames[0].meta["status"]["ffcState"] == "FFC_VALID_RAD"
+    assert worker_threads() == []
+
+
+async def test_upscale_and_rate_cap_are_reported(chunks: list[bytes]) -> None:
+    driver = FlirOneDriver(config(), MonotonicClock(), transport=RecordedTransport(chunks))
+    applied = await driver.apply(SensorConfig("thermal", rate_hz=30.0, resolution=(320, 240)))
+    assert applied.rate_hz == 9.0
+    assert any("capped at 9 Hz" in n for n in applied.notes)
+    assert any("320x240 is upscaled" in n for n in applied.notes)
+    frames = await collect(driver, limit=3)
+    assert frames[0].data.shape == (240, 320)
+    assert frames[0].meta["upscaled_from"] == (80, 60)
+
+
+async def test_lower_rate_is_decimated(chunks: list[bytes]) -> None:
+    driver = FlirOneDriver(config(rate_hz=2.0), MonotonicClock(), transport=RecordedTransport(chunks))
+    frames = await collect(driver)
+    assert 3 <= len(frames) <= 5  # 2 Hz over 1.97 s of camera time
+    assert np.diff([f.t for f in frames]).min() >= 0.75 / 2.0
+
+
+async def test_apply_while_running_changes_the_rate(chunks: list[bytes]) -> None:
+    driver = FlirOneDriver(config(), MonotonicClock(), transport=RecordedTransport(chunks, loop=True))
+    await driver.start()
+    try:
+        times: list[float] = []
+        async with asyncio.timeout(20):
+            async for frame in driver.frames():
+                times.append(frame.t)
+                if len(times) == 5:
+                    await driver.apply(SensorConfig("thermal", rate_hz=1.0, resolution=(80, 60)))
+                    mark = len(times)
+                if len(times) == 12:
+                    break
+    finally:
+        await driver.stop()
+    late = np.diff(times[mark + 3 :])  # up to three were read before the change
+    assert late.min() >= 0.75
+
+
+async def test_visible_stream_decodes_the_jpeg(chunks: list[bytes]) -> None:
+    cfg = config(stream="visible", modality="rgb")
+    driver = FlirOneDriver(cfg, MonotonicClock(), transport=RecordedTransport(chunks))
+    frames = await collect(driver, limit=2)
+    assert frames[0].modality == "rgb" and frames[0].data.shape == (1080, 1440, 3)
+    assert driver.capabilities.resolutions == ((1440, 1080),)
+
+
+def ffc_stream() -> list[bytes]:
+    y, x = np.mgrid[0:120, 0:160]
+    ok, jpeg = cv2.imencode(".jpg", np.zeros((48, 64, 3), np.uint8))
+    assert ok
+    states = ["ON", "ON", "FFC", "ON", "ON", "ON"]
+    out = []
+    for i, state in enumerate(states):
+        image = (3000 + x + y + 100 * i).astype(np.uint16)
+        status = {"shutterState": state, "usbNotifiedTimestamp": 1000.0 + 0.115 * i}
+        out.append(build_frame(encode_pro_thermal(image), jpeg.tobytes(), status, repeat_word=i))
+    return out
+
+
+async def test_ffc_frames_are_flagged_then_skipped() -> None:
+    driver = FlirOneDriver(config(), MonotonicClock(), transport=RecordedTransport(ffc_stream()))
+    frames = await collect(driver)
+    assert [f.meta["ffc"] for f in frames] == [False, False, True, True, False, False]
+    assert frames[0].data.shape == (120, 160) and frames[0].meta["layout"] == (160, 120)
+    skipping = FlirOneDriver(config(skip_ffc=True), MonotonicClock(), transport=RecordedTransport(ffc_stream()))
+    kept = await collect(skipping)
+    assert [int(f.data[0, 0]) for f in kept] == [3000, 3100, 3400, 3500]
+
+
+class UnpluggedAfter(RecordedTransport):
+    """Recorded reads, then the error pyusb's ENODEV becomes in the real transport."""
+
+    def __init__(self, chunks: list[bytes], reads: int) -> None:
+        super().__init__(chunks)
+        self.reads_left = reads
+
+    def read(self, size: int, timeout_ms: int) -> bytes:
+        self.reads_left -= 1
+        if self.reads_left < 0:
+            raise DriverUnavailableError("flirone: camera unplugged (USB no device)")
+        return super().read(size, timeout_ms)
+
+
+async def test_unplug_ends_frames_with_unavailable(chunks: list[bytes]) -> None:
+    driver = FlirOneDriver(config(), MonotonicClock(), transport=UnpluggedAfter(chunks, reads=30))
+    await driver.start()
+    got = 0
+    with pytest.raises(DriverUnavailableError, match="unplugged"):
+        async with asyncio.timeout(10):
+            async for _ in driver.frames():
+                got += 1
+    await driver.stop()
+    assert got >= 3
+
+
+async def test_recording_from_profile_path(shared_data: Path) -> None:
+    path = shared_data / "flirone_pro_gen3_usb_moezemara" / "usb_stream_concat.bin"
+    driver = FlirOneDriver(config(recording=str(path), loop=False), MonotonicClock())
+    frames = await collect(driver)
+    assert len(frames) == 18
+
+
+async def test_missing_usb_device_or_libusb_is_unavailable() -> None:
+    driver = FlirOneDriver(FlirOneConfig(name="thermal"), MonotonicClock())
+    await driver.stop()  # before start: a no-op
+    with pytest.raises(DriverUnavailableError, match=r"libusb|09cb:1996|pyusb|permission"):
+        await driver.start()
+    await driver.stop()
+    await driver.stop()
+    assert worker_threads() == []
+
+
+def test_config_checks_stream_and_modality() -> None:
+    with pytest.raises(pydantic.ValidationError, match="produces rgb frames"):
+        FlirOneConfig(name="x", stream="visible")
+    with pytest.raises(pydantic.ValidationError):
+        FlirOneConfig(name="x", rate_hz=40)
+    assert FlirOneConfig(name="x", stream="visible", modality="rgb").modality == "rgb"

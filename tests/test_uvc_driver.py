@@ -1,0 +1,184 @@
+"""UVC/OpenCV driver on a real video file written here with cv2.VideoWriter (MJPG/AVI):
+playback timing, resolution and rate changes, looping, pacing on a ManualClock, failures."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pydantic
+import pytest
+
+from respecd.clock import ManualClock, MonotonicClock
+from respecd.drivers import DRIVERS, driver_class
+from respecd.drivers.uvc import UVCConfig, UVCDriver
+from respecd.errors import DriverUnavailableError
+from respecd.messages import Frame, SensorConfig
+
+FPS = 20
+FRAMES = 30
+SIZE = (320, 240)
+
+
+@pytest.fixture(scope="module")
+def video(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """30 frames at 20 fps; frame i is grey level 4*i with a white bar at x = 10*i."""
+    path = tmp_path_factory.mktemp("uvc") / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), FPS, SIZE)
+    assert writer.isOpened()
+    for i in range(FRAMES):
+        image = np.full((SIZE[1], SIZE[0], 3), 4 * i, np.uint8)
+        image[:, 10 * i : 10 * i + 6] = 255
+        writer.write(image)
+    writer.release()
+    return path
+
+
+def config(video: Path, **kw) -> UVCConfig:
+    kw.setdefault("realtime", False)
+    kw.setdefault("resolutions", [(640, 480), (320, 240), (160, 120)])
+    return UVCConfig(name="rgb", device=str(video), **kw)
+
+
+def grey_level(frame: Frame) -> float:
+    return float(np.median(frame.data))
+
+
+def bar_x(frame: Frame) -> int:
+    """Column of the white bar, in the original 320-pixel frame."""
+    row = frame.data[frame.data.shape[0] // 2, :, 1].astype(int)
+    return int(np.argmax(row > 200) * SIZE[0] / frame.data.shape[1])
+
+
+async def collect(driver: UVCDriver, limit: int = 1000, on_frame=None) -> list[Frame]:
+    frames: list[Frame] = []
+    await driver.start()
+    try:
+        async with asyncio.timeout(20):
+            async for frame in driver.frames():
+                frames.append(frame)
+                if on_frame is not None:
+                    await on_frame(driver, frames)
+                if len(frames) >= limit:
+                    break
+    finally:
+        await driver.stop()
+    return frames
+
+
+def worker_threads() -> list[str]:
+    return [t.name for t in threading.enumerate() if t.name.startswith("respecd-")]
+
+
+def test_registered() -> None:
+    assert DRIVERS["uvc"][0] == "uvc" and driver_class("uvc") is UVCDriver
+
+
+async def test_plays_every_frame_of_the_file(video: Path) -> None:
+    driver = UVCDriver(config(video, resolution=SIZE), MonotonicClock())
+    frames = await collect(driver)
+    assert len(frames) == FRAMES  # the stream ends with the file (loop: false)
+    assert all(f.data.shape == (240, 320, 3) and f.data.dtype == np.uint8 for f in frames)
+    assert [f.meta["file_frame"] for f in frames] == list(range(FRAMES))
+    assert np.allclose(np.diff([f.t for f in frames]), 1 / FPS)  # the file's own frame rate
+    assert all(abs(bar_x(f) - 10 * i) <= 2 for i, f in enumerate(frames))  # MJPG blurs the edge
+    assert abs(grey_level(frames[10]) - 40) < 4  # MJPG is lossy
+    caps = driver.capabilities
+    assert caps.max_rate_hz == FPS and caps.upscaled == ((640, 480),)
+    assert driver.applied.rate_hz == FPS and "rate 30 Hz capped at 20 Hz" in driver.applied.notes
+    assert worker_threads() == []
+
+
+async def test_resolution_change_resizes_and_says_so(video: Path) -> None:
+    async def shrink(driver: UVCDriver, frames: list[Frame]) -> None:
+        if len(frames) == 5:
+            applied = await driver.apply(SensorConfig("rgb", rate_hz=FPS, resolution=(160, 120)))
+            assert applied.resolution == (160, 120)
+            assert "resized from 320x240 by cv2.resize" in applied.notes
+
+    frames = await collect(UVCDriver(config(video), MonotonicClock()), on_frame=shrink)
+    assert frames[0].data.shape == (240, 320, 3)
+    # up to three were read before the change: two in the handoff, one waiting for room
+    assert all(f.data.shape == (120, 160, 3) for f in frames[5 + 3 :])
+    assert frames[-1].meta["resized_from"] == SIZE
+    assert all(abs(bar_x(f) - 10 * f.meta["file_frame"]) <= 2 for f in frames)
+
+
+async def test_upscale_request_is_reported(video: Path) -> None:
+    driver = UVCDriver(config(video, resolution=(640, 480)), MonotonicClock())
+    frames = await collect(driver, limit=2)
+    assert frames[0].data.shape == (480, 640, 3)
+    assert "640x480 is upscaled from the native resolution" in driver.applied.notes
+
+
+async def test_rate_change_decimates_on_media_time(video: Path) -> None:
+    async def slow_down(driver: UVCDriver, frames: list[Frame]) -> None:
+        if len(frames) == 4:
+            applied = await driver.apply(SensorConfig("rgb", rate_hz=5.0, resolution=SIZE))
+            assert applied.rate_hz == 5.0 and "file runs at 20 fps, decimated to 5 Hz" in applied.notes
+
+    frames = await collect(UVCDriver(config(video), MonotonicClock()), on_frame=slow_down)
+    late = np.diff([f.t for f in frames[4 + 3 :]])  # up to three were read before the change
+    assert np.allclose(late, 0.2)  # every 4th frame of a 20 fps file
+    assert 4 + 5 <= len(frames) <= 4 + 3 + 7
+
+
+async def test_loop_continues_time_across_passes(video: Path) -> None:
+    frames = await collect(UVCDriver(config(video, loop=True), MonotonicClock()), limit=FRAMES + 15)
+    times = [f.t for f in frames]
+    assert np.allclose(np.diff(times), 1 / FPS)
+    assert frames[FRAMES].meta["loop"] == 1 and frames[FRAMES].meta["file_frame"] == 0
+    assert abs(bar_x(frames[FRAMES + 3]) - 30) <= 2
+
+
+async def test_realtime_playback_follows_the_clock(video: Path) -> None:
+    clock = ManualClock()
+    driver = UVCDriver(config(video, realtime=True), clock)
+    await driver.start()
+    frames: list[Frame] = []
+    try:
+        stream = driver.frames()
+        first = await asyncio.wait_for(anext(stream), 5)  # due at t0: no wait
+        assert first.t == 0.0
+        pending = asyncio.ensure_future(anext(stream))
+        await asyncio.sleep(0.1)
+        assert not pending.done()  # the next frame is due at 0.05 s on the clock, which has not moved
+        for _ in range(10):
+            clock.advance(1 / FPS)
+            frames.append(await asyncio.wait_for(pending, 5))
+            assert frames[-1].t <= clock.now() + 1e-9
+            pending = asyncio.ensure_future(anext(stream))
+        pending.cancel()
+        await stream.aclose()
+    finally:
+        await driver.stop()
+    assert [round(f.t, 6) for f in frames] == [round(i / FPS, 6) for i in range(1, 11)]
+
+
+async def test_disabled_sensor_emits_nothing(video: Path) -> None:
+    driver = UVCDriver(config(video, enabled=False), MonotonicClock())
+    assert await collect(driver) == []
+
+
+async def test_missing_file_and_device_are_unavailable(tmp_path: Path) -> None:
+    for device in (str(tmp_path / "nope.mp4"), "/dev/video99"):
+        driver = UVCDriver(UVCConfig(name="rgb", device=device), MonotonicClock())
+        with pytest.raises(DriverUnavailableError, match="nope.mp4|/dev/video99"):
+            await driver.start()
+        await driver.stop()
+        await driver.stop()
+    assert worker_threads() == []
+
+
+def test_config_validation() -> None:
+    with pytest.raises(pydantic.ValidationError, match="rgb frames only"):
+        UVCConfig(name="x", modality="thermal")
+    with pytest.raises(pydantic.ValidationError):
+        UVCConfig(name="x", fourcc="MJPEG")
+    with pytest.raises(pydantic.ValidationError):
+        UVCConfig(name="x", resolutions=[])
+    assert UVCConfig(name="x", device="/dev/respecd-rgb").is_file is False
+    assert UVCConfig(name="x", device="clip.mp4").is_file is True
