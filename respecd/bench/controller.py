@@ -21,6 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=20000, help="decision steps to time (default 20000)")
     parser.add_argument("--policy", choices=("learn", "exploit", "static", "heuristic"), default="learn")
     parser.add_argument("--mode", choices=("moves", "product"), default=None, help="override the action mode")
+    parser.add_argument("--rate-levels", default=None, help="override the rate levels, e.g. 1,10,30 (Hz)")
     parser.add_argument("--seed", type=int, default=0)
 
 
@@ -77,8 +78,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     profile = load_profile(args.profile)
     update: dict[str, Any] = {"policy": args.policy, "seed": args.seed}
+    actions: dict[str, Any] = {}
     if args.mode:
-        update["actions"] = profile.controller.actions.model_copy(update={"mode": args.mode})
+        actions["mode"] = args.mode
+    if args.rate_levels:
+        actions["rate_levels_hz"] = tuple(float(x) for x in args.rate_levels.split(","))
+    if actions:
+        update["actions"] = profile.controller.actions.model_copy(update=actions)
     config = profile.controller.model_copy(update=update)
     caps = {s.name: driver_class(s.driver)(s, None).capabilities for s in profile.sensors}  # no I/O in constructors
     controller = Controller.from_profile(config, profile, caps)

@@ -13,6 +13,8 @@ import numpy as np
 
 from respecd.control.config import Learning
 
+SMALL_ROW = 64  # actions per state below which plain Python beats numpy per call
+
 
 class QTable:
     """Q-values (n_states × n_actions, float64) plus visit counts and the ε schedule."""
@@ -32,8 +34,7 @@ class QTable:
 
     def update(self, state: int, action: int, reward: float, next_state: int) -> float:
         """One Watkins update; returns the TD error."""
-        # rows are a few dozen values: Python max over tolist() beats a numpy reduction here
-        target = reward + self.learning.discount * max(self.q[next_state].tolist())
+        target = reward + self.learning.discount * self._row_max(next_state)
         error = target - float(self.q[state, action])
         self.q[state, action] += self.learning.learning_rate * error
         self.visits[state, action] += 1
@@ -41,10 +42,19 @@ class QTable:
         self.epsilon = max(self.learning.epsilon_min, self.epsilon * self.learning.epsilon_decay)
         return error
 
+    def _row_max(self, state: int) -> float:
+        row = self.q[state]
+        # a few dozen values: Python's max over tolist() beats a numpy reduction's overhead
+        return max(row.tolist()) if row.size <= SMALL_ROW else float(row.max())
+
     def greedy(self, state: int) -> int:
-        row = self.q[state].tolist()
-        best = max(row)
-        ties = [i for i, v in enumerate(row) if v == best]
+        row = self.q[state]
+        if row.size <= SMALL_ROW:
+            values = row.tolist()
+            best = max(values)
+            ties = [i for i, v in enumerate(values) if v == best]
+        else:
+            ties = np.flatnonzero(row == row.max()).tolist()
         if len(ties) == 1:
             return ties[0]
         return ties[int(self.rng.integers(len(ties)))]
