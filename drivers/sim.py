@@ -133,8 +133,8 @@ class SimDriver(Driver):
             if woke == 1:
                 continue  # apply() changed the setting while we slept: recompute the due time
             frame = await self._frame(world, due, seq, self.applied)
-            if frame is None:
-                return
+            if frame is None or self._stopped.is_set():
+                return  # stopped while the frame rendered
             yield frame  # the supervisor counts it in health
             seq, last_t, k = seq + 1, due, k + 1
             k = self._skip_missed(anchor, k, rate)
@@ -220,13 +220,17 @@ class SimDriver(Driver):
                 render_depth(state, res, rng),
                 {"gt": ground_truth(state, res), "units": "mm", "valid_m": (0.3, 3.0)},
             )
-        gt_res = (sim.rgb_intrinsics.width, sim.rgb_intrinsics.height)
-        meta = {"gt": ground_truth(state, gt_res), "gt_resolution": gt_res}
+        gt_res = (sim.rgb_intrinsics.width, sim.rgb_intrinsics.height)  # radar/IMU boxes: the RGB calibration
         if modality == "radar":
-            meta.update(mode=applied.mode, figures=radar_figures(applied.mode, applied.rate_hz).as_dict())
-            return lambda: (render_radar(state, applied.mode, applied.rate_hz, rng), meta)
-        meta["ego_speed"] = state.ego_speed
-        return lambda: (render_imu(state, rng), meta)
+            figures = radar_figures(applied.mode, applied.rate_hz).as_dict()
+            return lambda: (
+                render_radar(state, applied.mode, applied.rate_hz, rng),
+                {"gt": ground_truth(state, gt_res), "gt_resolution": gt_res, "mode": applied.mode, "figures": figures},
+            )
+        return lambda: (
+            render_imu(state, rng),
+            {"gt": ground_truth(state, gt_res), "gt_resolution": gt_res, "ego_speed": state.ego_speed},
+        )
 
 
 def _timed(job: Callable[[], tuple]) -> tuple:
