@@ -136,3 +136,12 @@ def test_dwell_time_holds_switches() -> None:
     switches = [t for t in range(1, 30) if positions[t] != positions[t - 1]]
     assert held > 0
     assert all(b - a >= 5 for a, b in zip(switches, switches[1:], strict=False))
+
+
+def test_wide_rows_take_the_numpy_path_with_the_same_semantics() -> None:
+    table = QTable(2, 500, Learning(init="zero", learning_rate=1.0, discount=0.5), seed=4)
+    table.q[1, 321] = 2.0
+    assert table.greedy(1) == 321
+    table.update(0, 7, reward=1.0, next_state=1)
+    assert table.q[0, 7] == pytest.approx(1.0 + 0.5 * 2.0)
+    assert len({QTable(1, 500, Learning(init="zero"), seed=s).greedy(0) for s in range(10)}) > 1
