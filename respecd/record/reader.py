@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import json
 import struct
+import threading
 import zlib
+from collections import deque
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -72,6 +74,13 @@ class SessionLog:
     message_count: int = 0
     truncated: bool = False
     size: int = 0
+    _demux: Demux | None = field(default=None, repr=False, compare=False)
+
+    def shared_demux(self) -> Demux:
+        """The one-pass reader all replay drivers of this log share (created on first use)."""
+        if self._demux is None:
+            self._demux = Demux(self)
+        return self._demux
 
     @property
     def duration_s(self) -> float:
@@ -97,28 +106,77 @@ class SessionLog:
         with open(self.path, "rb") as f:
             yield from _iter_messages(f, wanted)
 
-    def frames(self, sensor: str) -> Iterator[Frame]:
-        """The sensor's logged frames in order; radar frames get their raw UART bytes back."""
+    def frames(self, sensor: str, demux: Demux | None = None) -> Iterator[Frame]:
+        """The sensor's logged frames in order; radar frames get their raw UART bytes back.
+
+        With ``demux`` (shared by every sensor of a replay) the file is read once in all,
+        instead of once per sensor.
+        """
         topic, raw = f"/sensors/{sensor}", f"/sensors/{sensor}/raw"
-        modality = self.sensors.get(sensor, "rgb")
-        pending: Frame | None = None
-        for t, schema, ns, data in self.messages([topic, raw]):
-            if t == topic:
-                if pending is not None:
-                    yield pending
-                pending = codec.decode_frame(schema, data, modality, ns)
-            elif pending is not None:
-                msg = json.loads(data)
-                if int((msg.get("respecd") or {}).get("seq", -1)) == pending.seq:
-                    pending.meta["raw"] = codec.b64decode(msg["data"])
-                    yield pending
-                    pending = None
-        if pending is not None:
-            yield pending
+        messages = demux.messages_for(sensor) if demux is not None else self.messages([topic, raw])
+        yield from _pair_frames(messages, topic, self.sensors.get(sensor, "rgb"))
 
     def json_messages(self, topic: str) -> Iterator[dict[str, Any]]:
         for _, _, _, data in self.messages([topic]):
             yield json.loads(data)
+
+
+def _pair_frames(messages: Iterable[tuple[str, str, int, bytes]], topic: str, modality: Modality) -> Iterator[Frame]:
+    """Decode frame messages; a raw-bytes message right after its frame (same seq) joins it."""
+    pending: Frame | None = None
+    for t, schema, ns, data in messages:
+        if t == topic:
+            if pending is not None:
+                yield pending
+            pending = codec.decode_frame(schema, data, modality, ns)
+        elif pending is not None:
+            msg = json.loads(data)
+            if int((msg.get("respecd") or {}).get("seq", -1)) == pending.seq:
+                pending.meta["raw"] = codec.b64decode(msg["data"])
+                yield pending
+                pending = None
+    if pending is not None:
+        yield pending
+
+
+class Demux:
+    """One pass over a log shared by several consumers (one per sensor, in worker threads).
+
+    A consumer asking for its next message reads ahead under a lock, parking other sensors'
+    messages in their own queues; the log interleaves sensors in time order and replay
+    drivers consume at log pace, so the queues stay short. A queue that nobody drains is
+    capped (oldest dropped) so a stopped driver cannot grow memory without bound.
+    """
+
+    MAX_PARKED = 4096
+
+    def __init__(self, session: SessionLog) -> None:
+        self._owner = {f"/sensors/{n}": n for n in session.sensors}
+        self._owner.update({f"/sensors/{n}/raw": n for n in session.sensors})
+        self._source = session.messages(list(self._owner))
+        self._parked: dict[str, deque[tuple[str, str, int, bytes]]] = {n: deque() for n in session.sensors}
+        self._lock = threading.Lock()
+        self._done = False
+        self.dropped = 0
+
+    def next_for(self, sensor: str) -> tuple[str, str, int, bytes] | None:
+        with self._lock:
+            queue = self._parked[sensor]
+            while not queue and not self._done:
+                item = next(self._source, None)
+                if item is None:
+                    self._done = True
+                    break
+                owner = self._parked[self._owner[item[0]]]
+                if len(owner) >= self.MAX_PARKED:
+                    owner.popleft()
+                    self.dropped += 1
+                owner.append(item)
+            return queue.popleft() if queue else None
+
+    def messages_for(self, sensor: str) -> Iterator[tuple[str, str, int, bytes]]:
+        while (item := self.next_for(sensor)) is not None:
+            yield item
 
 
 def _iter_messages(f: IO[bytes], wanted: set[str] | None) -> Iterator[tuple[str, str, int, bytes]]:

@@ -1,0 +1,52 @@
+"""Perception latency for lockstep replay, modelled from the log instead of measured.
+
+The controller's load factor and its latency penalty read perception latency. Measured on
+the replaying machine, it would make two replays of one log decide differently; modelled,
+it is a function of the log and the counterfactual alone. The model is seconds per RGB
+pixel (the detector is fully convolutional, so its cost follows the RGB resolution),
+fitted as the median over the log's recorded percepts, separately for percepts with
+attribution (a backward pass costs a few forward passes) and without.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import statistics
+from typing import Any
+
+from respecd.messages import Percept
+
+# Used only when the log recorded no percepts; 2-core x86-64 CPU, 640x360 RGB, see docs/RECORDING.md.
+DEFAULT_S_PER_MPIX = 0.12
+ATTRIBUTION_FACTOR = 3.0  # DESIGN.md: a backward pass costs about 2-3 forward passes on a CPU
+
+
+@dataclasses.dataclass(frozen=True)
+class LatencyModel:
+    s_per_pixel: float = DEFAULT_S_PER_MPIX / 1e6
+    s_per_pixel_attributed: float = ATTRIBUTION_FACTOR * DEFAULT_S_PER_MPIX / 1e6
+    source: str = "default"
+
+    @classmethod
+    def from_log(cls, session: Any) -> LatencyModel:
+        plain: list[float] = []
+        attributed: list[float] = []
+        for msg in session.json_messages("/respecd/percept"):
+            pixels = int(msg.get("pixels") or 0)
+            if pixels > 0 and msg.get("latency_s") is not None:
+                (attributed if msg.get("contributions") else plain).append(float(msg["latency_s"]) / pixels)
+        if not plain and not attributed:
+            return cls()
+        base = statistics.median(plain) if plain else statistics.median(attributed) / ATTRIBUTION_FACTOR
+        heavy = statistics.median(attributed) if attributed else base * ATTRIBUTION_FACTOR
+        return cls(base, heavy, "log")
+
+    def latency(self, percept: Percept) -> float:
+        frames = percept.bundle.frames if percept.bundle is not None else {}
+        rgb = frames.get("rgb")
+        pixels = rgb.data.shape[0] * rgb.data.shape[1] if rgb is not None else 0
+        rate = self.s_per_pixel_attributed if percept.contributions is not None else self.s_per_pixel
+        return pixels * rate
+
+    def apply(self, percept: Percept) -> Percept:
+        return dataclasses.replace(percept, latency=self.latency(percept))

@@ -1,0 +1,105 @@
+"""Lockstep time for ``--speed max``: the clock jumps to the next thing that is due, but only
+once everything caused by the previous step has finished, worker threads included.
+
+That makes a replay deterministic: which percepts a decision sees, which frames a tick
+pairs, and what every queue drops depend on logged time alone, never on how fast this
+machine's detector happens to be. Two pieces:
+
+* ``LockstepLoop`` — an event loop that counts work handed to executors
+  (``run_in_executor`` and so ``asyncio.to_thread``), so "a thread is still busy" is
+  visible;
+* ``LockstepClock`` — a ``ManualClock`` whose sleepers wake one at a time, in (time,
+  arrival) order, each after the loop has settled.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import heapq
+import itertools
+from collections.abc import Callable
+from typing import Any
+
+from respecd.clock import ManualClock
+
+POLL_S = 0.0002  # real seconds between checks while a worker thread is busy
+
+
+class LockstepLoop(asyncio.SelectorEventLoop):
+    """Counts executor jobs in flight until their result is back on the loop."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.in_flight = 0
+
+    def run_in_executor(self, executor: Any, func: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
+        future = super().run_in_executor(executor, func, *args)
+        self.in_flight += 1
+        # this callback is scheduled together with the awaiting task's wake-up, so the count
+        # drops only when the result is already queued on the loop
+        future.add_done_callback(self._job_done)
+        return future
+
+    def _job_done(self, _: asyncio.Future[Any]) -> None:
+        self.in_flight -= 1
+
+    def idle(self) -> bool:
+        """Nothing runnable now and no executor job outstanding."""
+        return self.in_flight == 0 and not self._ready  # type: ignore[attr-defined]
+
+
+class LockstepClock(ManualClock):
+    """Wakes sleepers one at a time in (deadline, arrival) order; ``run`` drives it."""
+
+    def __init__(self, start: float = 0.0) -> None:
+        super().__init__(start)
+        self._sleepers: list[tuple[float, int, asyncio.Future[None]]] = []
+        self._arrival = itertools.count()
+        self.steps = 0
+
+    async def sleep_until(self, t: float) -> None:
+        if t <= self.now():
+            return
+        future: asyncio.Future[None] = asyncio.get_running_loop().create_future()
+        heapq.heappush(self._sleepers, (t, next(self._arrival), future))
+        await future
+
+    def next_deadline(self) -> float | None:
+        while self._sleepers and self._sleepers[0][2].done():
+            heapq.heappop(self._sleepers)  # cancelled sleepers
+        return self._sleepers[0][0] if self._sleepers else None
+
+    def wake_next(self) -> float:
+        """Move to the earliest deadline and wake that one sleeper."""
+        t, _, future = heapq.heappop(self._sleepers)
+        super().set(t)
+        future.set_result(None)
+        self.steps += 1
+        return t
+
+    async def run(self, until: float, on_step: Callable[[float], None] | None = None) -> None:
+        """Drive time to ``until`` (or until nothing is left to wake)."""
+        loop = asyncio.get_running_loop()
+        while True:
+            await settle(loop)
+            deadline = self.next_deadline()
+            if deadline is None or deadline > until:
+                return
+            t = self.wake_next()
+            if on_step is not None:
+                on_step(t)
+
+
+async def settle(loop: asyncio.AbstractEventLoop) -> None:
+    """Return once every callback and executor job caused so far has run its course."""
+    idle_checks = 0
+    while idle_checks < 2:  # twice in a row: a callback may schedule one more round
+        await asyncio.sleep(0)
+        if isinstance(loop, LockstepLoop):
+            if loop.in_flight and not loop._ready:  # type: ignore[attr-defined]
+                await asyncio.sleep(POLL_S)  # a worker thread is busy: wait for it in real time
+                idle_checks = 0
+                continue
+            idle_checks = idle_checks + 1 if loop.idle() else 0
+        else:
+            idle_checks += 1  # best effort on a foreign loop

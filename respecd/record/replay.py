@@ -1,0 +1,178 @@
+"""``respecd --replay LOG``: run a recorded session through the same pipeline, with every
+sensor replaced by a counterfactual ``ReplayDriver``, and report how a policy did.
+
+``--speed max`` runs in lockstep on the log's clock (``LockstepLoop`` + ``LockstepClock``)
+and is deterministic: same log + profile + seed give the same decisions. Two things would
+otherwise leak this machine's timing into the controller, so lockstep replaces them:
+the CPU probe is off, and the perception latency the controller sees is modelled from the
+log (``LatencyModel``); the measured latency still goes into the report's compute figures.
+``--speed 1|2`` replays on a scaled wall clock with measured latencies, like a live run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from respecd.errors import InputError
+from respecd.messages import Percept
+from respecd.queues import DropOldestQueue
+from respecd.record import report as rpt
+from respecd.record import report_out
+from respecd.record.latency import LatencyModel
+from respecd.record.reader import SessionLog, open_log
+from respecd.record.replay_profile import first_frames, replay_profile
+
+log = structlog.get_logger(__name__)
+
+
+class _ModelledPercepts(DropOldestQueue[Percept]):
+    """The percept queue of a lockstep replay: the report sees the measured latency, the
+    controller a modelled one, so decisions do not depend on this machine's speed."""
+
+    def __init__(self, old: DropOldestQueue[Percept], model: LatencyModel, collector: rpt.Collector) -> None:
+        super().__init__(old.maxsize, old.name)
+        self.taps = old.taps
+        self._model = model
+        self._collector = collector
+
+    def put(self, item: Percept) -> bool:
+        self._collector.measured(item)
+        return super().put(self._model.apply(item))
+
+
+def run_replay(args: argparse.Namespace) -> int:
+    """Entry point from ``respecd --replay``; InputError/ConfigError become exit 2."""
+    session = open_log(args.replay)
+    if session.truncated:
+        print(f"respecd: warning: {session.path} was cut short (no summary); replaying its "
+              f"{session.duration_s:.2f} s up to the last complete chunk", file=sys.stderr)
+        log.warning("replay.truncated", path=str(session.path), readable_s=round(session.duration_s, 3))
+    base = _base_profile(args, session)
+    firsts = first_frames(session)
+    if not firsts:
+        raise InputError(f"{session.path}: the log holds no sensor frames to replay")
+    speed = str(getattr(args, "speed", "max"))
+    profile = replay_profile(base, session, firsts, seed=args.seed, lockstep=speed == "max", policy=args.policy)
+    t0 = min(f.t for f in firsts.values())
+    duration = session.duration_s if args.duration is None else min(args.duration, session.duration_s)
+    entry = _run(profile, session, args, speed, t0, duration)
+    entry.update(policy=profile.controller.policy, seed=args.seed, speed=speed, truncated=session.truncated)
+    return _emit(args, session, entry)
+
+
+def _base_profile(args: argparse.Namespace, session: SessionLog) -> dict[str, Any]:
+    """``--config`` when given explicitly, else the profile recorded in the log."""
+    from respecd.config import DEFAULT_PROFILE, load_profile
+
+    if args.config and args.config != DEFAULT_PROFILE:
+        return load_profile(args.config).model_dump(mode="json")
+    recorded = session.profile_dict()
+    if recorded is None:
+        raise InputError(f"{session.path}: the log has no recorded profile; pass the one it ran with: --config FILE")
+    return recorded
+
+
+def _run(profile: Any, session: SessionLog, args: argparse.Namespace, speed: str, t0: float, duration: float) -> dict:
+    from respecd.record.lockstep import LockstepLoop
+
+    state_dir = Path(args.state_dir) if args.state_dir else None
+    with tempfile.TemporaryDirectory(prefix="respecd-replay-") as scratch:
+        # a fresh Q-table per replay (unless --state-dir): two replays must not feed each other
+        runner = _Replay(profile, session, speed, t0, duration, state_dir or Path(scratch), args.seed)
+        if speed == "max":
+            with asyncio.Runner(loop_factory=LockstepLoop) as r:
+                return r.run(runner.run())
+        return asyncio.run(runner.run())
+
+
+class _Replay:
+    """One replay run: builds the daemon around replay drivers and drives its clock."""
+
+    def __init__(self, profile: Any, session: SessionLog, speed: str, t0: float, duration: float,
+                 state_dir: Path, seed: int) -> None:
+        self.profile = profile
+        self.session = session
+        self.speed = speed
+        self.t0 = t0
+        self.duration = duration
+        self.state_dir = state_dir
+        self.seed = seed
+        rgb = next((s for s in profile.sensors if s.modality == "rgb"), None)
+        self.collector = rpt.Collector(
+            rpt.build_reference(session, rgb.source or rgb.name if rgb else None),
+            tuple(rgb.native_resolution) if rgb is not None and rgb.native_resolution else None,
+        )
+
+    async def run(self) -> dict[str, Any]:
+        from respecd.clock import ScaledClock
+        from respecd.daemon import Daemon
+        from respecd.drivers.base import DriverContext
+        from respecd.record.lockstep import LockstepClock
+
+        lockstep = self.speed == "max"
+        clock: Any = LockstepClock(self.t0) if lockstep else ScaledClock(float(self.speed), start=self.t0)
+        context = DriverContext(seed=self.seed, replay=self.session)
+        daemon = Daemon(self.profile, clock, context, state_dir=self.state_dir, taps=[self.collector],
+                        status_sink=lambda fields, line: log.debug("status", line=line))
+        self.collector.attach(daemon.drivers)
+        if lockstep:
+            daemon.percepts = _ModelledPercepts(daemon.percepts, LatencyModel.from_log(self.session), self.collector)
+        else:
+            daemon.percepts.taps.insert(0, self.collector.measured)
+        await self._drive(daemon, clock, lockstep)
+        describe = getattr(daemon.controller, "describe_action", None)
+        power = {s.name: s.power for s in self.profile.sensors}
+        return rpt.summarize(self.collector, self.t0, self.t0 + self.duration, power, describe)
+
+    async def _drive(self, daemon: Any, clock: Any, lockstep: bool) -> None:
+        end = self.t0 + self.duration
+        bar = _progress_bar()(total=round(self.duration, 1), unit="s", desc="replay", disable=self.duration < 20,
+                   file=sys.stderr, leave=False)
+        task = asyncio.create_task(daemon.run(duration=self.duration), name="replay-daemon")
+
+        def progress(t: float) -> None:
+            done = round(min(t, end) - self.t0, 1)
+            if done > bar.n:
+                bar.update(done - bar.n)
+
+        try:
+            if lockstep:
+                await clock.run(end, on_step=progress)
+            else:
+                while not task.done():
+                    progress(clock.now())
+                    await asyncio.wait([task], timeout=0.5)
+            await task
+        finally:
+            bar.close()
+
+
+def _progress_bar() -> Any:
+    from tqdm import tqdm
+
+    class Bar(tqdm):  # type: ignore[misc]
+        monitor_interval = 0  # no monitor thread: it would outlive the replay by 10 s
+
+    return Bar
+
+
+def _emit(args: argparse.Namespace, session: SessionLog, entry: dict[str, Any]) -> int:
+    """Print the comparison table; write JSON + PNG when ``--report`` is given."""
+    log_id = {"path": str(session.path.resolve()), "bytes": session.size, "start_ns": session.start_ns}
+    policy = entry["policy"]
+    if args.report:
+        path = Path(args.report)
+        report = report_out.merge(path, log_id, policy, entry)
+        png = report_out.write(path, report)
+        log.info("replay.report", json=str(path), png=str(png), policies=list(report["policies"]))
+    else:
+        report = {"log": log_id, "policies": {policy: entry}}
+    print(report_out.table(report))
+    return 0

@@ -1,0 +1,128 @@
+"""Write the replay report: JSON (one entry per policy), a PNG timeline beside it, and the
+comparison table printed after every replay.
+
+Replaying the same log under another ``--policy`` into the same ``--report`` file adds that
+policy's entry, so ``static`` / ``heuristic`` / ``exploit`` line up in one table and one
+figure. A report for a different log is replaced, not merged.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+log = structlog.get_logger(__name__)
+
+COLUMNS = (
+    ("policy", "policy", "{}"),
+    ("F1", ("quality", "f1"), "{:.3f}"),
+    ("recall", ("quality", "recall"), "{:.3f}"),
+    ("precision", ("quality", "precision"), "{:.3f}"),
+    ("ConfAgg", ("quality", "mean_conf_agg"), "{:.3f}"),
+    ("infer ms/s", ("compute", "inference_ms_per_s"), "{:.0f}"),
+    ("Mpix/s", ("compute", "pixels_per_s"), "{:.2f}", 1e-6),
+    ("sensor W", ("energy", "mean_w"), "{:.2f}"),
+    ("switches", ("actions", "switches"), "{}"),
+    ("decisions", "n_decisions", "{}"),
+)
+
+
+def merge(path: Path, log_id: dict[str, Any], policy: str, entry: dict[str, Any]) -> dict[str, Any]:
+    """The report at ``path`` with ``entry`` added under ``policy`` (same log only)."""
+    report: dict[str, Any] = {"log": log_id, "policies": {}}
+    if path.is_file():
+        try:
+            old = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as err:
+            log.warning("report.unreadable", path=str(path), error=str(err))
+            old = None
+        if isinstance(old, dict) and old.get("log") == log_id:
+            report["policies"] = dict(old.get("policies") or {})
+        elif old is not None:
+            log.warning("report.replaced", path=str(path), reason="it describes another log")
+    report["policies"][policy] = entry
+    return report
+
+
+def write(path: Path, report: dict[str, Any]) -> Path:
+    """Atomically write the JSON, then the PNG timeline next to it; returns the PNG path."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=path.name, dir=path.parent)
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        json.dump(report, f, indent=1)
+    os.replace(tmp, path)
+    png = path.with_suffix(".png")
+    plot(report, png)
+    return png
+
+
+def _cell(entry: dict[str, Any], policy: str, key: Any, fmt: str, scale: float = 1.0) -> str:
+    if key == "policy":
+        return policy
+    if key == "n_decisions":
+        return str(len(entry.get("decisions", [])))
+    value = entry[key[0]][key[1]]
+    return fmt.format(value * scale if scale != 1.0 else value)
+
+
+def table(report: dict[str, Any]) -> str:
+    """One row per policy: quality, compute, energy, switching."""
+    rows = [[c[0] for c in COLUMNS]]
+    for policy, entry in report["policies"].items():
+        rows.append([_cell(entry, policy, c[1], c[2], *c[3:]) for c in COLUMNS])
+    widths = [max(len(r[i]) for r in rows) for i in range(len(COLUMNS))]
+    lines = ["  ".join(cell.rjust(w) if i else cell.ljust(w) for i, (cell, w) in enumerate(zip(r, widths, strict=True)))
+             for r in rows]
+    reference = {e["reference"] for e in report["policies"].values()}
+    lines.append(f"reference: {', '.join(sorted(reference))}; quality matched at IoU >= 0.5")
+    return "\n".join(lines)
+
+
+def plot(report: dict[str, Any], png: Path) -> None:
+    """Timeline per policy: actions, contributions, ConfAgg, latency (the load signal)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(4, 1, figsize=(11, 9), sharex=True)
+    names: dict[str, int] = {}
+    for policy, entry in report["policies"].items():
+        _plot_actions(axes[0], policy, entry, names)
+        times = [p["t"] for p in entry["timeline"]]
+        axes[2].plot(times, [p["conf_agg"] for p in entry["timeline"]], label=policy, lw=1)
+        axes[3].plot(times, [p["latency_ms"] for p in entry["timeline"]], label=policy, lw=1)
+        contributions = [(p["t"], p["contributions"]) for p in entry["timeline"] if p["contributions"]]
+        for modality in sorted({m for _, c in contributions for m in c}):
+            axes[1].plot([t for t, _ in contributions], [c.get(modality, 0.0) for _, c in contributions],
+                         label=f"{policy}: {modality}", lw=1, marker=".", ms=3)
+    titles = ("action chosen at each decision", "contribution per modality", "ConfAgg", "perception latency (ms, load)")
+    for ax, title in zip(axes, titles, strict=True):
+        ax.set_title(title, fontsize=9, loc="left")
+        ax.grid(alpha=0.3)
+        if ax.lines:
+            ax.legend(fontsize=7, ncol=4, loc="upper right")
+    axes[-1].set_xlabel("log time (s)")
+    fig.suptitle(f"replay of {Path(report['log']['path']).name}", fontsize=10)
+    fig.tight_layout()
+    fig.savefig(png, dpi=90)
+    plt.close(fig)
+
+
+def _plot_actions(ax: Any, policy: str, entry: dict[str, Any], names: dict[str, int]) -> None:
+    """Action chosen at each decision, one step line per policy; y ticks name the actions."""
+    decisions = entry["decisions"]
+    if not decisions:
+        return
+    ys = []
+    for d in decisions:
+        label = d.get("action_name") or str(d["action"])
+        label = label if len(label) <= 32 else label[:31] + "…"
+        ys.append(names.setdefault(label, len(names)))
+    ax.step([d["t"] for d in decisions], ys, where="post", label=policy, lw=1, marker=".", ms=4)
+    ax.set_yticks(range(len(names)), list(names), fontsize=6)

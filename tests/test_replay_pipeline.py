@@ -1,0 +1,100 @@
+"""End to end through the CLI: a short simulated session recorded with ``--record``, replayed
+with ``--replay --speed max`` (deterministic), under several policies into one report, from
+a cut file, and refused with exit 2 for missing, empty or non-MCAP input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+
+from respecd.cli import main
+
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+@pytest.fixture(scope="module")
+def session_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """4 s of the simulated rover at 640x360, recorded through ``respecd --record``."""
+    root = tmp_path_factory.mktemp("session")
+    profile = yaml.safe_load((CONFIGS / "sim-rover.yaml").read_text())
+    profile["name"] = "sim-rover-test"
+    profile["sensors"] = [s for s in profile["sensors"] if s["name"] != "depth"]  # keep the test light
+    profile["sensors"][0]["resolution"] = [640, 360]
+    profile["perception"] = {"enabled": False}  # no trained weights in the test environment
+    profile["simulation"]["scenario_duration_s"] = 1.5  # several scenes within the session
+    profile["controller"] = {"decision_period_s": 0.5, "window_s": 0.5}
+    config = root / "profile.yaml"
+    config.write_text(yaml.safe_dump(profile))
+    log = root / "session.mcap"
+    argv = ["--config", str(config), "--duration", "4", "--record", str(log), "--state-dir", str(root / "state"),
+            "--log-level", "warning", "--log-format", "json"]
+    assert main(argv) == 0
+    return log
+
+
+def _replay(log: Path, report: Path, *extra: str) -> int:
+    return main(["--replay", str(log), "--speed", "max", "--report", str(report), "--log-level", "warning",
+                 "--log-format", "json", *extra])
+
+
+def test_speed_max_replays_are_identical(session_log: Path, tmp_path: Path) -> None:
+    assert _replay(session_log, tmp_path / "a.json", "--seed", "3") == 0
+    assert _replay(session_log, tmp_path / "b.json", "--seed", "3") == 0
+    a = json.loads((tmp_path / "a.json").read_text())["policies"]["learn"]
+    b = json.loads((tmp_path / "b.json").read_text())["policies"]["learn"]
+    assert len(a["decisions"]) >= 5
+    assert a["decisions"] == b["decisions"]
+    assert a["configs"] == b["configs"] and a["compute"]["frames"] == b["compute"]["frames"]
+    assert {"t", "state", "action", "reward"} <= set(a["decisions"][0])
+    assert (tmp_path / "a.png").stat().st_size > 10_000
+
+
+def test_static_and_heuristic_give_a_comparison_table(
+    session_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    report = tmp_path / "cmp.json"
+    assert _replay(session_log, report, "--policy", "static") == 0
+    assert _replay(session_log, report, "--policy", "heuristic") == 0
+    table = capsys.readouterr().out.strip().splitlines()
+    header = max(i for i, line in enumerate(table) if line.startswith("policy") and "F1" in line and "sensor W" in line)
+    rows = [line.split()[0] for line in table[header + 1 : header + 3]]
+    assert rows == ["static", "heuristic"]
+    policies = json.loads(report.read_text())["policies"]
+    assert set(policies) == {"static", "heuristic"}
+    assert policies["static"]["actions"]["switches"] == 0  # static never moves
+    for entry in policies.values():
+        assert entry["reference"] == "ground_truth"  # simulated frames carry meta["gt"]
+        assert entry["energy"]["total_j"] > 0 and entry["compute"]["pixels_per_s"] > 0
+    assert report.with_suffix(".png").is_file()
+
+
+def test_cut_log_replays_up_to_the_cut_with_a_warning(
+    session_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    cut = tmp_path / "cut.mcap"
+    data = session_log.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    assert _replay(cut, tmp_path / "cut.json", "--policy", "static") == 0
+    err = capsys.readouterr().err
+    assert "was cut short" in err and "up to the last complete chunk" in err
+    entry = json.loads((tmp_path / "cut.json").read_text())["policies"]["static"]
+    assert entry["truncated"] is True
+    assert 0.5 < entry["replayed_s"] < 3.9
+
+
+@pytest.mark.parametrize(
+    ("content", "message"),
+    [(None, "no such file"), (b"", "empty file (0 bytes)"), (b"not a log at all\n", "not an MCAP file")],
+)
+def test_bad_replay_input_is_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], content: bytes | None, message: str
+) -> None:
+    log = tmp_path / "in.mcap"
+    if content is not None:
+        log.write_bytes(content)
+    assert main(["--replay", str(log), "--speed", "max", "--log-level", "warning"]) == 2
+    err = capsys.readouterr().err
+    assert message in err and str(log) in err and "Traceback" not in err
