@@ -16,6 +16,7 @@ if TYPE_CHECKING:
 # key -> (module under respecd.drivers, driver class name, config class name)
 DRIVERS: dict[str, tuple[str, str, str]] = {
     "sim": ("sim", "SimDriver", "SimConfig"),
+    "replay": ("replay", "ReplayDriver", "ReplayConfig"),
     "iwr6843": ("iwr6843", "IWR6843Driver", "IWR6843Config"),
 }
 
