@@ -30,7 +30,7 @@ from respecd.queues import DropOldestQueue
 from respecd.radar import cfg
 from respecd.radar.chirp import ChirpProfile, lookup, max_rate_hz
 from respecd.radar.cli_port import CliPort
-from respecd.radar.data_port import DataPortReader
+from respecd.radar.data_port import INTER_BYTE_TIMEOUT_S, DataPortReader
 from respecd.radar.parser import MmwParser, Packet, RadarPacket
 
 log = structlog.get_logger(__name__)
@@ -97,6 +97,7 @@ class IWR6843Driver(Driver):
         self._last_packet = 0.0  # time.monotonic() of the last packet, for stall detection
         self.switch_times_s: list[float] = []
         self.foreign_packets = 0
+        self._stream_mode: RadarMode | None = None  # chirp preference of the frames now arriving
 
     @property
     def capabilities(self) -> Capabilities:
@@ -191,6 +192,7 @@ class IWR6843Driver(Driver):
             self._log.info("radar.disabled", switch_ms=round(seconds * 1000, 1))
             return replace(planned, notes=(*planned.notes, "radar stopped (sensorStop)"))
         self.parser.doppler_resolution = profile.velocity_resolution_mps  # SDK 2.x Doppler bins -> m/s
+        self._stream_mode = profile.preference
         self.health.paused = False
         self.switch_times_s.append(seconds)
         self._log.info("radar.switch", mode=profile.preference, rate_hz=profile.rate_hz,
@@ -224,7 +226,8 @@ class IWR6843Driver(Driver):
         c = self.config
         cli = serial.Serial(c.cli_port, c.cli_baud, timeout=0.1, write_timeout=c.cli_timeout_s)
         try:
-            data = serial.Serial(c.data_port, c.data_baud, timeout=c.read_timeout_s)
+            data = serial.Serial(c.data_port, c.data_baud, timeout=c.read_timeout_s,
+                                 inter_byte_timeout=INTER_BYTE_TIMEOUT_S)
         except BaseException:
             cli.close()
             raise
@@ -250,7 +253,7 @@ class IWR6843Driver(Driver):
                 continue
             t = self.clock.now()
             frame = packet.to_frame(t, self._seq)
-            frame.meta["mode"] = self.profile.preference if self.profile else None
+            frame.meta["mode"] = self._stream_mode
             self._seq += 1
             self.health.frame(t)
             self.health.drops += packet.gap  # frames the radar numbered but the UART lost

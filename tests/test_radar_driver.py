@@ -179,7 +179,9 @@ async def test_start_streams_real_frames_and_stop_is_clean(radar: FakeRadar) -> 
         assert frame.meta["raw"].startswith(MAGIC) and frame.meta["mode"] == "range"
     assert radar.commands[-1] == "sensorStop" and not radar.streaming.is_set()
     await driver.stop()  # idempotent
-    assert await _take(driver, 1) == []  # frames() ends after stop
+    async with asyncio.timeout(2):  # frames() drains what arrived before stop, then ends
+        rest = [frame async for frame in driver.frames()]
+    assert len(rest) <= driver.config.frame_queue and all(f.meta["mode"] == "range" for f in rest)
 
 
 async def test_reconfigure_switches_chirp_and_reports_the_time(radar: FakeRadar) -> None:
@@ -195,8 +197,9 @@ async def test_reconfigure_switches_chirp_and_reports_the_time(radar: FakeRadar)
         assert "frameCfg 0 2 64 0 50 1 0" in switch
         assert applied.mode == "velocity" and applied.rate_hz == 20
         assert any("reconfigured in" in note for note in applied.notes) and len(driver.switch_times_s) == 2
-        frames = await _take(driver, 3)
-        assert all(f.meta["mode"] == "velocity" for f in frames) and not driver.health.paused
+        frames = await _take(driver, driver.config.frame_queue + 3)  # frames queued before the switch come first
+        assert all(f.meta["mode"] == "velocity" for f in frames[-3:]) and not driver.health.paused
+        assert frames[-1].meta["frame_number"] > frames[-2].meta["frame_number"]
         sent = len(radar.commands)
         same = await driver.apply(SensorConfig(modality="radar", rate_hz=20.2, mode="velocity"))
         assert len(radar.commands) == sent and same.rate_hz == 20  # same table row: nothing sent

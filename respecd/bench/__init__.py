@@ -8,6 +8,7 @@ from __future__ import annotations
 
 BENCHES: dict[str, str] = {
     "pipeline": "respecd.bench.pipeline",
+    "drivers": "respecd.bench.drivers",
     "controller": "respecd.bench.controller",
     "sim": "respecd.bench.sim",
 }

@@ -19,7 +19,8 @@ from respecd.radar.parser import MmwParser, Packet
 
 log = structlog.get_logger(__name__)
 
-READ_MAX = 4096  # bytes per read call: ~45 ms of a saturated 921600-baud port
+READ_MAX = 1024  # bytes per read call: ~11 ms of a saturated 921600-baud port (bounds latency)
+INTER_BYTE_TIMEOUT_S = 0.002  # a read returns 2 ms after a burst (a frame) ends, not per byte
 
 
 class DataPortReader:
@@ -59,8 +60,8 @@ class DataPortReader:
     def _run(self) -> None:
         try:
             while not self._stopping.is_set():
-                waiting = self.port.in_waiting
-                data = self.port.read(min(max(1, waiting), READ_MAX))  # returns early at the port timeout
+                # returns after READ_MAX bytes, a 2-ms pause in the stream, or the port timeout (stop check)
+                data = self.port.read(READ_MAX)
                 if not data:
                     continue
                 self.bytes_read += len(data)

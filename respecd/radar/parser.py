@@ -16,7 +16,6 @@ from __future__ import annotations
 import dataclasses
 import struct
 from collections import Counter
-from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -146,6 +145,7 @@ class MmwParser:
         self._last_frame: dict[str, int] = {}
         self._wait_until = 0  # stream offset up to which a pending packet extends
         self._scanned = 0  # stream offset up to which the pending packet holds no other magic
+        self._pending: tuple[int, Header] | None = None  # (stream offset, checked header) awaiting its tail
 
     @property
     def pending(self) -> int:
@@ -155,9 +155,14 @@ class MmwParser:
     def feed(self, data: bytes | bytearray | memoryview) -> list[Packet]:
         """Append ``data`` and return every packet it completed."""
         self.stats.bytes_in += len(data)
-        self._buf += data
-        if self._base + len(self._buf) < self._wait_until and not self._magic_in_new_bytes():
-            return []  # still inside a packet whose header we checked: skip the re-check
+        buf = self._buf
+        buf += data
+        end = self._base + len(buf)
+        if end < self._wait_until:
+            # inside a packet whose header was checked: only look for a magic word in the new bytes
+            if buf.find(MAGIC, self._scanned - self._base) < 0:
+                self._scanned = end - (len(MAGIC) - 1)
+                return []
         out: list[Packet] = []
         pos = 0
         while True:
@@ -168,15 +173,9 @@ class MmwParser:
             if packet is not None:
                 out.append(packet)
         if pos:
-            del self._buf[:pos]
+            del buf[:pos]
             self._base += pos
         return out
-
-    def _magic_in_new_bytes(self) -> bool:
-        """While waiting for a packet's tail: did the bytes since the last look bring a magic word?"""
-        found = self._buf.find(MAGIC, self._scanned - self._base) >= 0
-        self._scanned = self._base + max(0, len(self._buf) - len(MAGIC) + 1)
-        return found
 
     def _step(self, pos: int) -> tuple[int, Packet | None]:
         """Consume from ``pos``: (bytes consumed, packet or None); (0, None) = need more bytes."""
@@ -218,10 +217,15 @@ class MmwParser:
     def _oob(self, pos: int) -> tuple[int, Packet | None]:
         if len(self._buf) - pos < tlv.HEADER.size:
             return 0, None
-        header = Header.unpack(self._buf, pos)
-        problem = header.problem(self.max_packet)
-        if problem:
-            return self._reject(problem)
+        at = self._base + pos
+        if self._pending is not None and self._pending[0] == at:
+            header = self._pending[1]  # checked when it arrived; now the whole packet is here
+        else:
+            header = Header.unpack(self._buf, pos)
+            problem = header.problem(self.max_packet)
+            if problem:
+                return self._reject(problem)
+            self._pending = (at, header)
         raw = self._span(pos, header.total_len)
         if raw is None:
             return 0, None
@@ -232,7 +236,9 @@ class MmwParser:
             return self._reject(packet)
         gap = self._track("oob", header.frame_number)
         self.stats.packets += 1
-        self.stats.tlv_counts.update(t for t, _, _ in packet.tlvs)
+        counts = self.stats.tlv_counts
+        for tlv_type, _, _ in packet.tlvs:
+            counts[tlv_type] += 1
         return header.total_len, _with_gap(packet, gap)
 
     def _foreign(self, pos: int) -> tuple[int, Packet | None]:
@@ -291,50 +297,46 @@ def decode_oob(
         return f"{header.total_len - end} B after the last TLV (padding is < {tlv.SEGMENT})"
     view = memoryview(raw)
     n, v3 = header.num_points, header.sdk_major >= 3
-    found: dict[int, Any] = {}
-    for tlv_type, start, length in walked:
-        decoder = _DECODERS.get(tlv_type)
-        if decoder is None:
-            continue  # types 4, 8, 10 and unknown ones: listed in ``tlvs``, payload skipped by length
-        result = decoder(view[start:start + length], n, v3)
+    points = side = stats = temperature = None
+    for tlv_type, start, length in walked:  # plain branches: this loop runs for every packet
+        payload = view[start:start + length]
+        result: Any = None
+        if tlv_type == _POINTS:
+            result = points = tlv.decode_points_v3(payload, n) if v3 else tlv.decode_points_v2(payload, n)
+        elif tlv_type == _SIDE_INFO:
+            result = side = tlv.decode_side_info(payload, n)
+        elif tlv_type == _STATS:
+            result = stats = tlv.decode_stats(payload)
+        elif tlv_type == _TEMPERATURE:
+            result = temperature = tlv.decode_temperature(payload)
+        elif tlv_type in _U16_ARRAYS and length % 2:
+            result = f"uint16 array TLV {tlv_type} has odd length {length}"
         if isinstance(result, str):
             return result
-        found[tlv_type] = result
+        # types 4, 8, 10 and unknown ones: listed in ``tlvs``, payload skipped by length
     return RadarPacket(
         frame_number=header.frame_number,
         version=header.version,
         platform=header.platform,
         subframe=header.subframe,
         time_cpu_cycles=header.time_cpu_cycles,
-        points=_points(found, n, v3, doppler_resolution),
+        points=_points(points, side, n, v3, doppler_resolution),
         tlvs=tuple(walked),
         raw=raw,
         offset=offset,
-        side_info=found.get(TlvType.DETECTED_POINTS_SIDE_INFO),
-        stats=found.get(TlvType.STATS),
-        temperature=found.get(TlvType.TEMPERATURE_STATS),
+        side_info=side,
+        stats=stats,
+        temperature=temperature,
     )
 
 
-def _check_u16(payload: memoryview, n: int, v3: bool) -> str | None:
-    return f"uint16 array TLV has odd length {len(payload)}" if len(payload) % 2 else None
+_POINTS, _SIDE_INFO = int(TlvType.DETECTED_POINTS), int(TlvType.DETECTED_POINTS_SIDE_INFO)
+_STATS, _TEMPERATURE = int(TlvType.STATS), int(TlvType.TEMPERATURE_STATS)
+_U16_ARRAYS = {int(TlvType.RANGE_PROFILE), int(TlvType.NOISE_PROFILE), int(TlvType.RANGE_DOPPLER_HEATMAP)}
 
 
-# type -> decoder(payload, num_points, sdk3) -> value or problem string
-_DECODERS: dict[int, Callable[[memoryview, int, bool], Any]] = {
-    TlvType.DETECTED_POINTS: lambda p, n, v3: tlv.decode_points_v3(p, n) if v3 else tlv.decode_points_v2(p, n),
-    TlvType.DETECTED_POINTS_SIDE_INFO: lambda p, n, v3: tlv.decode_side_info(p, n),
-    TlvType.STATS: lambda p, n, v3: tlv.decode_stats(p),
-    TlvType.TEMPERATURE_STATS: lambda p, n, v3: tlv.decode_temperature(p),
-    TlvType.RANGE_PROFILE: _check_u16,
-    TlvType.NOISE_PROFILE: _check_u16,
-    TlvType.RANGE_DOPPLER_HEATMAP: _check_u16,
-}
-
-
-def _points(found: dict[int, Any], n: int, v3: bool, doppler_resolution: float) -> np.ndarray:
+def _points(decoded: Any, side: np.ndarray | None, n: int, v3: bool, doppler_resolution: float) -> np.ndarray:
     """Assemble float32 (N, 5) x, y, z, v, snr from whichever point TLVs the packet had."""
-    decoded = found.get(TlvType.DETECTED_POINTS)
     points = np.empty((n if decoded is not None else 0, 5), dtype=np.float32)
     if decoded is None:
         return points  # header counted points but no points TLV was sent (guiMonitor off)
@@ -343,7 +345,6 @@ def _points(found: dict[int, Any], n: int, v3: bool, doppler_resolution: float) 
     else:
         points[:, :3] = decoded["xyz"]
         points[:, 3] = decoded["doppler_idx"] * np.float32(doppler_resolution)  # bin index -> m/s
-    side = found.get(TlvType.DETECTED_POINTS_SIDE_INFO)
     if side is None:
         points[:, 4] = np.nan
     else:
