@@ -92,7 +92,7 @@ class SimDriver(Driver):
             return
         self._stopped.set()
         if self._executor is not None:
-            self._executor.shutdown(wait=False, cancel_futures=True)  # the worker ends after its render
+            self._executor.shutdown(wait=False)  # the worker ends after its render; frames() then returns
             self._executor = None
         if self._world is not None:
             log.info("sim_stop", sensor=self.name, frames=self.health.frames)

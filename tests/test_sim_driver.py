@@ -188,3 +188,27 @@ async def test_builtin_profile_builds_five_sim_sensors() -> None:
     assert {d.applied.resolution for d in drivers} == {(1280, 720), (160, 120), (640, 480), None}
     for d in drivers:
         assert d.config.power.watts(d.applied) > 0
+
+
+async def test_thread_and_inline_renders_are_identical() -> None:
+    clock = ManualClock(start=1.0)
+    inline = _driver("depth", clock, rate_hz=10, resolution=(424, 240))
+    threaded = _driver("depth", clock, rate_hz=10, resolution=(424, 240), render_in_thread="always")
+    readers = []
+    for driver in (inline, threaded):
+        await driver.start()
+        readers.append(Reader(driver))
+    for step in range(4):
+        for _ in range(500):  # the threaded render finishes in real time, not clock time
+            if all(len(r.frames) > step for r in readers):
+                break
+            await asyncio.sleep(0.002)
+        clock.advance(0.1)
+    for reader in readers:
+        await reader.close()
+    a, b = readers[0].frames[:4], readers[1].frames[:4]
+    assert len(a) == len(b) == 4
+    assert all(
+        np.array_equal(x.data, y.data) and x.t == y.t and x.meta["gt"] == y.meta["gt"]
+        for x, y in zip(a, b, strict=True)
+    )
