@@ -104,3 +104,18 @@ def test_radar_dump_bad_input_exits_2(tmp_path: Path, capsys: pytest.CaptureFixt
     assert "no TI mmWave data-port frames in 5000 bytes" in capsys.readouterr().err
     assert main(["radar-dump", str(tmp_path)]) == 2
     assert "is a directory" in capsys.readouterr().err
+
+
+def test_bench_drivers_parses_every_real_frame_whole_and_chunked() -> None:
+    from respecd.bench import BENCHES
+
+    bench = importlib.import_module(BENCHES["drivers"])
+    parser = argparse.ArgumentParser()
+    bench.add_arguments(parser)
+    args = parser.parse_args(["--data", str(_need(SDK33).parents[1]), "--repeat", "1", "--rounds", "1", "--chunk", "7"])
+    figures = bench.run(args)["radar_parser"]
+    assert figures["whole_frames_per_round"] == figures["chunked_frames_per_round"] == 99 + 100 + 101
+    assert figures["captures"] == 3 and figures["uart_budget_b_per_s"] == 92160
+    assert figures["whole_x_uart_budget"] > 0 and figures["chunked_mb_per_cpu_s"] > 0
+    with pytest.raises(InputError, match="cannot read radar capture"):
+        bench.run(parser.parse_args(["--data", "/nonexistent", "--repeat", "1", "--rounds", "1"]))

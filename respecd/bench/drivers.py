@@ -50,6 +50,7 @@ def radar_parser(args: argparse.Namespace) -> dict[str, Any]:
         wall = min(r[0] for r in rounds)
         cpu = min(r[1] for r in rounds)  # CPU seconds: robust when other processes share the cores
         frames = rounds[0][2]
+        out[f"{label}_frames_per_round"] = frames
         out[f"{label}_mb_per_s"] = round(total_bytes / wall / 1e6, 2)
         out[f"{label}_frames_per_s"] = round(frames / wall)
         out[f"{label}_x_uart_budget"] = round(total_bytes / wall / UART_BYTES_PER_S, 1)  # vs 921600 baud 8N1
