@@ -16,6 +16,9 @@ if TYPE_CHECKING:
 # key -> (module under respecd.drivers, driver class name, config class name)
 DRIVERS: dict[str, tuple[str, str, str]] = {
     "sim": ("sim", "SimDriver", "SimConfig"),
+    "uvc": ("uvc", "UVCDriver", "UVCConfig"),
+    "flirone": ("flirone", "FlirOneDriver", "FlirOneConfig"),
+    "realsense": ("realsense", "RealSenseDriver", "RealSenseConfig"),
     "replay": ("replay", "ReplayDriver", "ReplayConfig"),
     "iwr6843": ("iwr6843", "IWR6843Driver", "IWR6843Config"),
 }
