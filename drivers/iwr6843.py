@@ -111,7 +111,8 @@ class IWR6843Driver(Driver):
                 self._base = await asyncio.to_thread(cfg.read_cfg, self.config.base_cfg)
             except InputError as err:
                 raise ConfigError(f"sensor {self.name}: base_cfg: {err}") from err
-        self._queue = DropOldestQueue(self.config.frame_queue, name=self.name)
+        while len(self._queue):  # the end marker of a previous stop must not end the new stream
+            self._queue.get_nowait()
         self._failed = asyncio.Event()
         async with self._lock:
             try:
@@ -126,6 +127,7 @@ class IWR6843Driver(Driver):
 
     async def stop(self) -> None:
         if not self._running and not self._ports:
+            self._queue.put(None)
             return
         self._running = False
         if self._watch_task is not None:
@@ -142,9 +144,8 @@ class IWR6843Driver(Driver):
         self._log.info("radar.stopped", frames=self.health.frames, **self.parser.stats.as_dict())
 
     async def frames(self) -> AsyncIterator[Frame]:
-        queue = self._queue
         while True:
-            frame = await queue.get()
+            frame = await self._queue.get()
             if frame is None:
                 return
             yield frame
@@ -210,12 +211,19 @@ class IWR6843Driver(Driver):
         for port in (self.config.cli_port, self.config.data_port):
             if not os.path.exists(port):
                 raise DriverUnavailableError(f"radar {self.name}: {port} is absent (board unplugged?)")
+        opening = asyncio.ensure_future(asyncio.to_thread(self._open_ports))
         try:
-            self._ports = await asyncio.wait_for(asyncio.to_thread(self._open_ports), self.config.open_timeout_s)
+            self._ports = await asyncio.wait_for(asyncio.shield(opening), self.config.open_timeout_s)
+        except BaseException as err:  # timeout or cancel: close the ports if the open completes later
+            opening.add_done_callback(_close_opened)
+            if isinstance(err, (OSError, TimeoutError)):
+                raise DriverUnavailableError(f"radar {self.name}: cannot open ports: {err}") from err
+            raise
+        try:
             self._cli = CliPort(self._ports[0], self.config.cli_timeout_s, self.config.cli_retries)
             await self._cli_call(self._cli.wake)
         except (OSError, TimeoutError) as err:
-            raise DriverUnavailableError(f"radar {self.name}: cannot open ports: {err}") from err
+            raise DriverUnavailableError(f"radar {self.name}: CLI port does not answer: {err}") from err
         self._reader = DataPortReader(self._ports[1], self.parser, asyncio.get_running_loop(),
                                       self._on_packets, self._on_read_error, name=f"{self.name}-data")
         self._reader.start()
@@ -250,7 +258,10 @@ class IWR6843Driver(Driver):
                 if self.foreign_packets == 0:
                     self._log.warning("radar.foreign_format", kind=packet.kind, hint="not the out-of-box demo")
                 self.foreign_packets += 1
+                self._last_packet = time.monotonic()  # alive, just the wrong firmware: no reconnect churn
                 continue
+            if self._seq == 0:
+                self._log.info("radar.firmware", sdk=packet.version_str, platform=f"{packet.platform:#x}")
             t = self.clock.now()
             frame = packet.to_frame(t, self._seq)
             frame.meta["mode"] = self._stream_mode
@@ -302,3 +313,12 @@ class IWR6843Driver(Driver):
                     return
             await asyncio.sleep(delay)
             delay = min(delay * 2, self.config.reconnect_max_s)
+
+
+def _close_opened(opening: asyncio.Future[list[Any]]) -> None:
+    """Close ports whose open finished after we stopped waiting for it."""
+    if opening.cancelled() or opening.exception() is not None:
+        return
+    for port in opening.result():
+        with contextlib.suppress(OSError):
+            port.close()  # serial close of a just-opened port: no I/O to wait for

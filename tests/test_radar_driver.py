@@ -44,8 +44,8 @@ class FakeRadar:
     """An IWR6843 on two pseudo-terminals, reachable through symlinks in ``folder``."""
 
     def __init__(self, folder: Path, frames: list[bytes], garbage_first: bool = True,
-                 reject: tuple[str, ...] = (), silent: bool = False) -> None:
-        self.frames, self.reject, self.silent = frames, reject, silent
+                 reject: tuple[str, ...] = (), silent: bool = False, renumber: bool = True) -> None:
+        self.frames, self.reject, self.silent, self.renumber = frames, reject, silent, renumber
         self.commands: list[str] = []
         self.streaming = threading.Event()
         self.mute = threading.Event()  # stop streaming without being told (a hung radar)
@@ -131,7 +131,8 @@ class FakeRadar:
                 time.sleep(0.005)
                 continue
             frame = bytearray(self.frames[index % len(self.frames)])
-            struct.pack_into("<I", frame, 20, number)
+            if self.renumber:
+                struct.pack_into("<I", frame, 20, number)  # out-of-box header: frameNumber at offset 20
             self._write(self._data, bytes(frame))
             index, number = index + 1, number + 1
             time.sleep(0.01)
@@ -274,6 +275,26 @@ async def test_silent_stream_is_detected_and_restarted(radar: FakeRadar) -> None
         assert len(await _take(driver, 2)) == 2
     finally:
         await driver.stop()
+
+
+async def test_people_counting_firmware_is_reported_not_streamed(tmp_path: Path) -> None:
+    path = REAL / "ti_iwr6843aop_pplcount_niek" / "data.bin"
+    if not path.exists():
+        pytest.skip(f"shared capture {path} absent")
+    data = path.read_bytes()[:200_000]
+    starts = [i for i in range(len(data) - 8) if data.startswith(MAGIC, i)]
+    packets = [data[a:b] for a, b in zip(starts, starts[1:], strict=False)]
+    fake = FakeRadar(tmp_path, packets, renumber=False)
+    driver = IWR6843Driver(_config(fake), MonotonicClock())
+    try:
+        await driver.start()
+        async with asyncio.timeout(5):
+            while driver.foreign_packets < 5:
+                await asyncio.sleep(0.02)
+        assert driver.health.frames == 0 and driver.parser.stats.foreign_packets >= 5
+    finally:
+        await driver.stop()
+        fake.unplug()
 
 
 def test_cli_port_retries_a_garbled_first_command_and_times_out(tmp_path: Path) -> None:
