@@ -125,6 +125,7 @@ class FrameAssembler:
 
     def __init__(self) -> None:
         self._buf = bytearray()
+        self._need = 0  # bytes the frame at the buffer's start needs in all, once its header is known
         self._last: tuple[FrameHeader, bytes] | None = None
         self.stats = AssemblerStats()
 
@@ -138,13 +139,18 @@ class FrameAssembler:
             else:
                 self.stats.bytes_skipped += len(self._buf)
             self._buf.clear()
+            self._need = 0
         self._buf += chunk
+        if len(self._buf) < self._need:  # mid-frame: the header was checked when it arrived
+            return []
         frames: list[FlirFrame] = []
         while True:
             header = self._sync()
-            if header is None or len(self._buf) < HEADER_SIZE + header.frame_size:
+            self._need = HEADER_SIZE + header.frame_size if header is not None else 0
+            if header is None or len(self._buf) < self._need:
                 return frames
-            end = HEADER_SIZE + header.frame_size
+            end = self._need
+            self._need = 0
             body = bytes(self._buf[HEADER_SIZE:end])
             del self._buf[:end]
             frame = self._decode(header, body)
