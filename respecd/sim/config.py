@@ -51,7 +51,10 @@ class SimulationConfig(StrictModel):
         description="Pinhole model of the simulated RGB camera; every simulated imager shares this view.",
     )
     max_exposure_s: float = Field(
-        1.0, gt=0, le=1, description="Longest RGB exposure (s); otherwise exposure is one frame period."
+        0.1,
+        gt=0,
+        le=1,
+        description="Longest RGB auto-exposure (s; UVC cameras stop near 1/10 s); below that, one frame period.",
     )
 
     @field_validator("scenarios")
