@@ -41,7 +41,7 @@ class SimulationConfig(StrictModel):
     distance_m: Range = Field((2.0, 12.0), description="Nearest and farthest distance of a person from the rover (m).")
     walk_speed_mps: Range = Field((0.5, 1.8), description="Walking speed range in the moving scenarios (m/s).")
     good_light: Range = Field((0.6, 1.0), description="Illumination range (0 dark .. 1 bright) in good light.")
-    poor_light: Range = Field((0.01, 0.06), description="Illumination range in poor light (a dim lab, lights off).")
+    poor_light: Range = Field((0.005, 0.03), description="Illumination range in poor light (a dim lab, lights off).")
     ego_speed_mps: Range = Field(
         (0.0, 0.4), description="Peak speed of the rover's own back-and-forth motion in the moving scenarios (m/s)."
     )
