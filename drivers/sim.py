@@ -177,7 +177,7 @@ class SimDriver(Driver):
     async def _frame(self, world: World, t: float, seq: int, applied: SensorConfig) -> Frame | None:
         state = world.state_at(t)
         rng = np.random.default_rng([world.seed, self._modality_index, seq])
-        key = (applied.resolution, applied.mode, applied.rate_hz if self.modality == "radar" else None)
+        key = self._key(applied)
         job = self._job(state, applied, rng)
         if self._use_thread(key, state):
             executor = self._executor
@@ -191,6 +191,15 @@ class SimDriver(Driver):
         self._segment = state.segment
         meta.update(scenario=state.scenario, light=state.light, segment=state.segment, render_s=cost)
         return Frame(self.modality, t, seq, data, meta)
+
+    def _key(self, applied: SensorConfig) -> tuple:
+        """What a render's cost depends on: resolution or mode (and the rate, for the radar's chirp)."""
+        return applied.resolution, applied.mode, applied.rate_hz if self.modality == "radar" else None
+
+    @property
+    def render_cost_s(self) -> float | None:
+        """Moving average of a render's CPU time at the current setting; None before the first."""
+        return self._cost_s.get(self._key(self.applied))
 
     def _use_thread(self, key: tuple, state: SceneState) -> bool:
         mode = self.sim_config.render_in_thread
@@ -234,6 +243,6 @@ class SimDriver(Driver):
 
 
 def _timed(job: Callable[[], tuple]) -> tuple:
-    start = time.perf_counter()
+    start = time.thread_time()  # CPU time of this thread: preemption by other processes is not render cost
     data, meta = job()
-    return data, meta, time.perf_counter() - start
+    return data, meta, time.thread_time() - start
