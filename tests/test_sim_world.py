@@ -3,15 +3,20 @@
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from respecd.config import load_profile
+from respecd.errors import ConfigError
 from respecd.sim.camera import ground_truth
 from respecd.sim.radar_model import radar_figures
 from respecd.sim.render import render_depth, render_imu, render_radar, render_rgb, render_thermal
 from respecd.sim.state import Occluder, SceneState, Target
 from respecd.sim.world import SCENARIOS, SimulationConfig, World, make_world
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _rng(seed: int = 0) -> np.random.Generator:
@@ -242,3 +247,18 @@ def test_partial_occlusion_scenario_hides_part_of_a_person() -> None:
         assert state.scenario == "occlusion-partial" and state.occluders[0].kind == "solid"
         visible.append(ground_truth(state, (1280, 720))[0]["visible"])
     assert all(0.1 < v < 0.9 for v in visible), visible
+
+
+def test_bad_simulation_section_names_the_line(tmp_path: Path) -> None:
+    lines = (REPO / "configs" / "sim-rover.yaml").read_text().splitlines()
+    line = next(i for i, s in enumerate(lines) if s.startswith("  scenarios:"))
+    lines[line] = "  scenarios: [good-light-static, foggy-night]"
+    path = tmp_path / "bad.yaml"
+    path.write_text("\n".join(lines))
+    with pytest.raises(ConfigError) as err:
+        load_profile(path)
+    assert any(
+        p.startswith(f"{path}:{line + 1}: simulation.scenarios") and "foggy-night" in p for p in err.value.problems
+    )
+    with pytest.raises(ValueError, match="distance_m"):
+        SimulationConfig(distance_m=(12.0, 2.0))
