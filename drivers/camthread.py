@@ -124,7 +124,7 @@ class Worker:
         self._commands: queue.SimpleQueue[tuple[Callable[[], Any], concurrent.futures.Future[Any]]] = (
             queue.SimpleQueue()
         )
-        self._thread = threading.Thread(target=self._run, name=f"respecd-{name}", daemon=True)
+        self._thread = threading.Thread(target=self._run, name=f"respecd-driver-{name}", daemon=True)
 
     def start(self) -> None:
         self._thread.start()

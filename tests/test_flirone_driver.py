@@ -46,7 +46,7 @@ async def collect(driver: FlirOneDriver, limit: int = 1000) -> list[Frame]:
 
 
 def worker_threads() -> list[str]:
-    return [t.name for t in threading.enumerate() if t.name.startswith("respecd-")]
+    return [t.name for t in threading.enumerate() if t.name.startswith("respecd-driver-")]
 
 
 def test_registered() -> None:

@@ -70,7 +70,7 @@ async def collect(driver: UVCDriver, limit: int = 1000, on_frame=None) -> list[F
 
 
 def worker_threads() -> list[str]:
-    return [t.name for t in threading.enumerate() if t.name.startswith("respecd-")]
+    return [t.name for t in threading.enumerate() if t.name.startswith("respecd-driver-")]
 
 
 def test_registered() -> None:
