@@ -262,3 +262,9 @@ def test_bad_simulation_section_names_the_line(tmp_path: Path) -> None:
     )
     with pytest.raises(ValueError, match="distance_m"):
         SimulationConfig(distance_m=(12.0, 2.0))
+
+
+def test_a_nearer_person_hides_part_of_a_farther_one() -> None:
+    back, front = _person(x=0.0, z=8.0), replace(_person(x=0.1, z=4.0), id=1)
+    visible = {g["id"]: g["visible"] for g in ground_truth(_scene(back, front), (640, 360))}
+    assert visible[1] == 1.0 and visible[0] < 0.3

@@ -86,14 +86,22 @@ def smoke_opacity(xs: np.ndarray, ys: np.ndarray, zs: np.ndarray, occluders: tup
     return 1.0 - clear
 
 
+def _as_blocker(target: Target) -> Occluder:
+    """A person as an opaque rectangle for visibility tests (0.8 of the width: arms and the leg gap)."""
+    w, h = target.size
+    return Occluder("solid", target.position, (0.8 * w, h), 1.0, 0.0, float("inf"), target.temperature_k, target.color)
+
+
 def ground_truth(state: SceneState, rgb_resolution: tuple[int, int]) -> list[dict]:
     """Boxes of every person at least partly in view, in pixels at ``rgb_resolution``.
 
     ``visible`` is the share of the body that is in the frame and not behind a solid
-    occluder; ``smoke`` the mean RGB opacity of smoke in front of the visible part.
+    occluder or a nearer person; ``smoke`` the mean RGB opacity of smoke in front of the
+    visible part.
     """
     cam = Camera.at(state.intrinsics, rgb_resolution)
     out: list[dict] = []
+    bodies = {tg.id: _as_blocker(tg) for tg in state.targets}
     for target in sorted(state.targets, key=lambda tg: tg.id):
         if target.position[2] <= NEAR_M:
             continue
@@ -106,7 +114,8 @@ def ground_truth(state: SceneState, rgb_resolution: tuple[int, int]) -> list[dic
         zs = np.full_like(xs, z)
         u, v = cam.fx * xs / z + cam.cx, cam.fy * ys / z + cam.cy
         seen = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        seen &= ~blocked_mask(xs, ys, zs, state.occluders, "solid")
+        others = tuple(body for tid, body in bodies.items() if tid != target.id)
+        seen &= ~blocked_mask(xs, ys, zs, state.occluders + others, "solid")
         smoke = smoke_opacity(xs, ys, zs, state.occluders)
         out.append(
             {
