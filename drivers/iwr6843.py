@@ -181,7 +181,11 @@ class IWR6843Driver(Driver):
         self.health.paused = True
         started = time.monotonic()
         try:
-            await self._cli_call(self._cli.send_config, lines, lines=len(lines))
+            await self._cli_call(self._cli.send_config, lines[:-1], lines=len(lines))
+            if profile is not None:  # frames after sensorStart are the new profile's; older ones have arrived
+                self.parser.doppler_resolution = profile.velocity_resolution_mps  # SDK 2.x Doppler bins -> m/s
+                self._stream_mode = profile.preference
+            await self._cli_call(self._cli.command, lines[-1])
         except (*_RECOVERABLE, TimeoutError) as err:
             self.profile = None
             self.health.error(err)
@@ -192,8 +196,6 @@ class IWR6843Driver(Driver):
         if profile is None:
             self._log.info("radar.disabled", switch_ms=round(seconds * 1000, 1))
             return replace(planned, notes=(*planned.notes, "radar stopped (sensorStop)"))
-        self.parser.doppler_resolution = profile.velocity_resolution_mps  # SDK 2.x Doppler bins -> m/s
-        self._stream_mode = profile.preference
         self.health.paused = False
         self.switch_times_s.append(seconds)
         self._log.info("radar.switch", mode=profile.preference, rate_hz=profile.rate_hz,
