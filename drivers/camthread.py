@@ -274,10 +274,10 @@ class ThreadedDriver(Driver):
         except BaseException as err:
             worker.stop()
             await self._join(worker)
-            log.warning("driver_unavailable", sensor=self.name, error=str(err))
+            log.debug("driver_start_failed", sensor=self.name, error=str(err))  # the supervisor logs it once
             raise
         self._worker, self._handoff, self._seen_drops = worker, handoff, 0
-        log.info("driver_started", sensor=self.name, driver=self.key)
+        log.debug("driver_started", sensor=self.name, driver=self.key)  # lifecycle is logged by the supervisor
 
     async def stop(self) -> None:
         worker, self._worker = self._worker, None
@@ -311,7 +311,7 @@ class ThreadedDriver(Driver):
             if item is END:
                 return
             if isinstance(item, BaseException):
-                log.warning("driver_failed", sensor=self.name, error=str(item))
+                log.debug("driver_failed", sensor=self.name, error=str(item))
                 raise item
             yield self._to_frame(item)
 
