@@ -1,9 +1,8 @@
 """Simulated sensors: one driver instance per modality, all looking at one shared, seeded world.
 
-Frames come on a fixed grid of the injected clock at the applied rate (no drift: frame k
-after a rate change is due at anchor + k / rate) and are stamped with their grid time, so
-a run on a ``ManualClock`` is deterministic. Each frame's noise comes from
-``default_rng([seed, modality, seq])``. Rendering runs inline when it is measured to be
+Frames come on the grid k / rate of the injected clock (no drift, independent of start
+time) and are stamped with their grid time, so a run on a ``ManualClock`` is deterministic.
+Each frame's noise comes from ``default_rng([seed, modality, seq])``. Rendering runs inline when it is measured to be
 cheap (< 2 ms) and in the driver's own worker thread otherwise, so the event loop never
 waits on a 1280x720 render or on a scenario's background being built.
 """
@@ -11,6 +10,7 @@ waits on a 1280x720 render or on a scenario's background being built.
 from __future__ import annotations
 
 import asyncio
+import math
 import time
 from collections.abc import AsyncIterator, Awaitable, Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -116,16 +116,13 @@ class SimDriver(Driver):
     async def frames(self) -> AsyncIterator[Frame]:
         world = self.world
         seq, last_t = 0, None
-        anchor, k, rate = self.clock.now(), 0, self.applied.rate_hz
         while not self._stopped.is_set():
             if not self.applied.enabled:
                 if await self._race(self._wait_enabled()) is None:
                     return
-                anchor, k, rate = self.clock.now(), 0, self.applied.rate_hz
+                last_t = None  # a re-enabled sensor starts on the next slot from now
                 continue
-            if self.applied.rate_hz != rate:
-                anchor, k, rate = self._regrid(last_t, self.applied.rate_hz)
-            due = anchor + k / rate  # frame k of the current grid: no drift, the mean rate is exact
+            due = self._next_due(last_t, self.applied.rate_hz)
             self._changed.clear()
             woke = await self._race(self.clock.sleep_until(due), self._changed.wait())
             if woke is None:
@@ -136,23 +133,24 @@ class SimDriver(Driver):
             if frame is None or self._stopped.is_set():
                 return  # stopped while the frame rendered
             yield frame  # the supervisor counts it in health
-            seq, last_t, k = seq + 1, due, k + 1
-            k = self._skip_missed(anchor, k, rate)
+            seq, last_t = seq + 1, due
 
-    def _regrid(self, last_t: float | None, rate: float) -> tuple[float, int, float]:
-        """A new rate's grid: one new period after the last frame, or now if that is past."""
+    def _next_due(self, last_t: float | None, rate: float) -> float:
+        """The next slot k / rate of the world-time grid after the last frame.
+
+        Slots are anchored at t = 0, so a sensor's frame times never drift and do not depend
+        on when it started (the newest frame at time t is floor(t * rate) / rate). A consumer
+        that fell a whole period behind skips to the newest slot (the skipped ones count as drops).
+        """
         now = self.clock.now()
-        if last_t is None or last_t + 1.0 / rate < now:
-            return now, 0, rate
-        return last_t, 1, rate
-
-    def _skip_missed(self, anchor: float, k: int, rate: float) -> int:
-        """When the consumer fell a whole period behind, drop the slots it missed (counted)."""
-        behind = int((self.clock.now() - (anchor + k / rate)) * rate)
-        if behind > 0:
-            self.health.drops += behind
-            return k + behind
-        return k
+        if last_t is None:
+            return math.ceil(now * rate - 1e-9) / rate
+        k = math.floor(last_t * rate + 1e-9) + 1
+        newest = math.floor(now * rate + 1e-9)
+        if newest > k:
+            self.health.drops += newest - k
+            k = newest
+        return k / rate
 
     async def _wait_enabled(self) -> None:
         while not self.applied.enabled:
