@@ -126,3 +126,19 @@ def test_read_cfg_errors_name_the_file(tmp_path: Path) -> None:
     partial.write_text("% only comments\nsensorStop\nguiMonitor -1 1 0 0 0 0 1\n")
     with pytest.raises(InputError, match="partial.cfg: cfg lacks channelCfg, profileCfg, chirpCfg, frameCfg"):
         cfg.read_cfg(partial)
+
+
+def test_uart_model_matches_the_radars_own_transmit_time() -> None:
+    """The stats TLV of frame k+1 times the UART send of frame k: 8N1 at 921600 baud, +3-4 %."""
+    from respecd.radar.chirp import UART_BYTES_PER_S
+    from respecd.radar.parser import MmwParser
+
+    names = ("ti_awr1642_oob_piatek/AWR1642_test_data_SDK_3_6_0.dat",
+             "ti_iwr6843_oob_automated_doors/xwr68xx_processed_stream_2019_12_04T21_44_51_663.dat")
+    for name in names:
+        if not (REAL / name).exists():
+            pytest.skip(f"{REAL / name} absent")
+        packets = MmwParser().feed((REAL / name).read_bytes())
+        ratios = [after.stats["transmit_output_time_us"] * 1e-6 / (len(before.raw) / UART_BYTES_PER_S)
+                  for before, after in zip(packets, packets[1:], strict=False)]
+        assert len(ratios) >= 99 and all(1.0 <= r <= 1.06 for r in ratios), name
