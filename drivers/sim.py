@@ -3,7 +3,7 @@
 Frames come on the grid k / rate of the injected clock (no drift, independent of start
 time) and are stamped with their grid time, so a run on a ``ManualClock`` is deterministic.
 Each frame's noise comes from ``default_rng([seed, modality, seq])``. Rendering runs inline when it is measured to be
-cheap (< 2 ms) and in the driver's own worker thread otherwise, so the event loop never
+cheap (< 1 ms CPU) and in the driver's own worker thread otherwise, so the event loop never
 waits on a 1280x720 render or on a scenario's background being built.
 """
 
@@ -33,7 +33,7 @@ from respecd.sim.world import World, make_world
 
 log = structlog.get_logger(__name__)
 
-INLINE_BUDGET_S = 0.002  # renders measured above this go to the worker thread
+INLINE_BUDGET_S = 0.001  # renders above this go to the worker thread (a hand-off costs the loop ~0.1 ms)
 _COST_SMOOTHING = 0.2  # EWMA weight of the newest render time
 
 CAPABILITIES: dict[str, Capabilities] = {
@@ -48,7 +48,7 @@ CAPABILITIES: dict[str, Capabilities] = {
 class SimConfig(DriverConfigBase):
     driver: Literal["sim"] = Field(description="Simulated sensor looking at the profile's `simulation:` world.")
     render_in_thread: Literal["auto", "always", "never"] = Field(
-        "auto", description="Render in a worker thread: auto = when a render is measured to take over 2 ms."
+        "auto", description="Render in a worker thread: auto = when a render is measured to take over 1 ms of CPU."
     )
 
 
