@@ -182,3 +182,25 @@ def test_config_validation() -> None:
         UVCConfig(name="x", resolutions=[])
     assert UVCConfig(name="x", device="/dev/respecd-rgb").is_file is False
     assert UVCConfig(name="x", device="clip.mp4").is_file is True
+
+
+def test_camera_entries_in_a_profile(tmp_path: Path) -> None:
+    """The three camera drivers as a profile's sensors, and a typo reported with its line."""
+    from respecd.config import load_profile
+    from respecd.errors import ConfigError
+
+    text = """name: cameras
+sensors:
+  - {name: rgb, driver: uvc, device: /dev/respecd-rgb, fourcc: MJPG, resolution: [1280, 720]}
+  - {name: thermal, driver: flirone, rate_hz: 9, resolution: [160, 120]}
+  - {name: depth, driver: realsense, stream: depth, product: D435I, rate_hz: 15}
+  - {name: imu, driver: realsense, modality: imu, stream: imu, product: T265}
+"""
+    path = tmp_path / "cams.yaml"
+    path.write_text(text)
+    profile = load_profile(path)
+    assert [s.driver for s in profile.sensors] == ["uvc", "flirone", "realsense", "realsense"]
+    path.write_text(text.replace("fourcc: MJPG", "fourc: MJPG"))
+    with pytest.raises(ConfigError) as err:
+        load_profile(path)
+    assert any(p.startswith(f"{path}:3: sensors.0.fourc: unknown key") for p in err.value.problems)
