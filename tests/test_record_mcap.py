@@ -117,16 +117,17 @@ async def test_log_opens_with_mcap_reader_and_decodes_with_foxglove_schemas(tmp_
                 points = np.frombuffer(base64.b64decode(body["data"]), "<f4").reshape(-1, 5)
                 seq = body["respecd"]["seq"]
                 np.testing.assert_array_equal(points, sent[seq]["radar"].data)
-    assert seen["foxglove.CompressedImage"] == 3 * 45  # rgb jpeg, thermal and depth png
+    assert seen["foxglove.CompressedImage"] == 45  # rgb jpeg
+    assert seen["foxglove.RawImage"] == 2 * 45  # thermal mono16, depth 16UC1 (the default: exact, cheap)
     assert seen["foxglove.PointCloud"] == 45 and seen["respecd.RawBytes"] == 45
     assert seen["respecd.Decision"] == 3 and seen["respecd.SensorConfig"] == 3
 
 
 async def test_frames_come_back_exact_where_lossless(tmp_path: Path) -> None:
-    recorder, sent = await _record(tmp_path, depth_format="raw")
+    recorder, sent = await _record(tmp_path, depth_format="png")
     log = open_log(recorder.paths[0])
     assert log.sensors == {"cam": "rgb", "ir": "thermal", "depth": "depth", "radar": "radar", "imu": "imu"}
-    assert log.channels["/sensors/depth"].schema == "foxglove.RawImage"
+    assert log.channels["/sensors/depth"].schema == "foxglove.CompressedImage"  # lossless 16-bit PNG
     for name in ("ir", "depth", "radar", "imu"):
         frames = list(log.frames(name))
         assert [f.seq for f in frames] == list(range(45))

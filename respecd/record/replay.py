@@ -15,6 +15,7 @@ import argparse
 import asyncio
 import sys
 import tempfile
+import time
 from pathlib import Path
 from typing import Any
 
@@ -122,14 +123,22 @@ class _Replay:
         daemon = Daemon(self.profile, clock, context, state_dir=self.state_dir, taps=[self.collector],
                         status_sink=lambda fields, line: log.debug("status", line=line))
         self.collector.attach(daemon.drivers)
+        self.latency_source = "measured"
         if lockstep:
-            daemon.percepts = _ModelledPercepts(daemon.percepts, LatencyModel.from_log(self.session), self.collector)
+            model = LatencyModel.from_log(self.session)
+            self.latency_source = f"{model.source}: {model.s_per_pixel * 1e9:.1f} ns/px"
+            daemon.percepts = _ModelledPercepts(daemon.percepts, model, self.collector)
         else:
             daemon.percepts.taps.insert(0, self.collector.measured)
+        started = time.perf_counter()
         await self._drive(daemon, clock, lockstep)
+        wall = time.perf_counter() - started
         describe = getattr(daemon.controller, "describe_action", None)
         power = {s.name: s.power for s in self.profile.sensors}
-        return rpt.summarize(self.collector, self.t0, self.t0 + self.duration, power, describe)
+        entry = rpt.summarize(self.collector, self.t0, self.t0 + self.duration, power, describe)
+        entry["wall_s"] = round(wall, 3)  # the replay loop alone: imports and weight loading excluded
+        entry["latency_model"] = self.latency_source
+        return entry
 
     async def _drive(self, daemon: Any, clock: Any, lockstep: bool) -> None:
         end = self.t0 + self.duration

@@ -1,0 +1,188 @@
+"""Replay: ``--speed max`` throughput with the detector, and recording overhead at 30 Hz.
+
+* Recording overhead: the recorder taps real simulated frames (pre-rendered, cycled) on a
+  real-time 30 Hz schedule; overhead = CPU time of the writer thread (encode, compress,
+  write) plus the taps on the loop, over wall time, in % of one core. Measured for RGB
+  alone (640x360 JPEG at 30 Hz) and for the whole simulated rover.
+* Replay throughput: a simulated session is recorded in lockstep (fast, no detector), then
+  replayed with ``--speed max`` through the full pipeline with the detector, RGB held at
+  the chosen resolution (policy static, one RGB setting). Speed = log seconds / wall
+  seconds of the replay loop (imports, profile and weight loading are reported apart).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--seconds", type=float, default=20.0, help="length of the simulated log to replay (s)")
+    parser.add_argument("--resolution", default="640x360", help="RGB resolution WxH (default 640x360)")
+    parser.add_argument("--weights", default="builtin:sim-rover", help="detector checkpoint (default the shipped one)")
+    parser.add_argument("--record-seconds", type=float, default=10.0, help="real-time recording measurement (s)")
+    parser.add_argument("--seed", type=int, default=0, help="simulator seed")
+    parser.add_argument("--keep", metavar="DIR", help="keep the generated log and report in DIR")
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    width, height = (int(v) for v in args.resolution.lower().split("x"))
+    with tempfile.TemporaryDirectory(prefix="respecd-bench-replay-") as scratch:
+        work = Path(args.keep) if args.keep else Path(scratch)
+        work.mkdir(parents=True, exist_ok=True)
+        rgb_only = asyncio.run(_recording_overhead(work / "rgb-only.mcap", (width, height), args, rgb_only=True))
+        rover = asyncio.run(_recording_overhead(work / "rover.mcap", (width, height), args, rgb_only=False))
+        profile, weights_note = _profile(args, (width, height), work)
+        log = _record_simulated(profile, work / "session.mcap", args)
+        replay = _replay(profile, log, work, args)
+    return {
+        "recording_rgb_30hz": rgb_only,
+        "recording_sim_rover": rover,
+        "replay": {**replay, "weights": weights_note, "rgb": f"{width}x{height}"},
+    }
+
+
+# -- recording overhead -------------------------------------------------------------------
+def _frames(size: tuple[int, int], seed: int) -> dict[str, list[Any]]:
+    """Real simulated frames per modality (the sim-rover's resolutions), 15 of each."""
+    import numpy as np
+
+    from respecd.sim.render import render_depth, render_imu, render_radar, render_rgb, render_thermal
+    from respecd.sim.world import SimulationConfig, World
+
+    world = World(SimulationConfig(scenarios=["good-light-moving"]), seed)
+    rng = np.random.default_rng(seed)
+    out: dict[str, list[Any]] = {"rgb": [], "thermal": [], "radar": [], "depth": [], "imu": []}
+    for k in range(15):
+        state = world.state_at(5.0 + k / 30)
+        out["rgb"].append(render_rgb(state, size, 1 / 30, rng))
+        out["thermal"].append(render_thermal(state, (160, 120), rng))
+        out["radar"].append(render_radar(state, "range", 10.0, rng))
+        out["depth"].append(render_depth(state, (640, 480), rng))
+        out["imu"].append(render_imu(state, rng))
+    return out
+
+
+async def _recording_overhead(path: Path, size: tuple[int, int], args: argparse.Namespace, rgb_only: bool) -> dict:
+    from respecd.clock import MonotonicClock
+    from respecd.messages import Frame
+    from respecd.record.config import RecordingConfig
+    from respecd.record.recorder import Recorder
+
+    rates = {"rgb": 30.0} if rgb_only else {"rgb": 30.0, "thermal": 9.0, "radar": 10.0, "depth": 15.0, "imu": 30.0}
+    frames = _frames(size, args.seed)
+    clock = MonotonicClock()
+    recorder = Recorder(RecordingConfig(path=str(path)), {"name": "bench", "sensors": []}, clock)
+    recorder.start()
+    tap_cpu = 0.0
+    counts = dict.fromkeys(rates, 0)
+    start = clock.now()
+    tick = 1.0 / 30
+    k = 0
+    while clock.now() - start < args.record_seconds:
+        k += 1
+        await clock.sleep_until(start + k * tick)
+        now = clock.now()
+        c0 = time.thread_time()
+        for name, rate in rates.items():
+            if counts[name] < (now - start) * rate:
+                data = frames[name][counts[name] % 15]
+                recorder.on_frame(name, Frame(name, now, counts[name], data))  # type: ignore[arg-type]
+                counts[name] += 1
+        tap_cpu += time.thread_time() - c0
+    wall = clock.now() - start
+    await recorder.close()
+    cpu = recorder.cpu_s + tap_cpu
+    return {
+        "streams_hz": rates,
+        "wall_s": round(wall, 2),
+        "frames": sum(counts.values()),
+        "writer_cpu_s": round(recorder.cpu_s, 3),
+        "tap_cpu_s": round(tap_cpu, 4),
+        "overhead_pct_of_one_core": round(100 * cpu / wall, 2),
+        "dropped": recorder.dropped,
+        "mib_per_s": round(path.stat().st_size / 2**20 / wall, 2),
+    }
+
+
+# -- replay throughput --------------------------------------------------------------------
+def _profile(args: argparse.Namespace, size: tuple[int, int], work: Path) -> tuple[Any, str]:
+    """sim-rover with RGB fixed at ``size``, policy static; untrained weights when none ship."""
+    from respecd.config import load_profile
+    from respecd.errors import ConfigError
+    from respecd.perception import checkpoint
+
+    weights, note = args.weights, args.weights
+    try:
+        checkpoint.resolve(weights)
+    except ConfigError:
+        from respecd.perception.model import FusionNet
+
+        profile = load_profile("builtin:sim-rover")
+        weights = str(work / "untrained.pt")
+        checkpoint.save(Path(weights), FusionNet(profile.perception.model))
+        note = f"untrained (no checkpoint {args.weights!r}); same network, so the same compute"
+    base = load_profile("builtin:sim-rover")
+    sensors = [s.model_copy(update={"resolution": size}) if s.modality == "rgb" else s for s in base.sensors]
+    actions = base.controller.actions.model_copy(update={"rgb_resolutions": (size,)})
+    controller = base.controller.model_copy(update={"policy": "static", "actions": actions})
+    perception = base.perception.model_copy(update={"weights": weights})
+    return base.model_copy(update={"sensors": sensors, "controller": controller, "perception": perception}), note
+
+
+def _record_simulated(profile: Any, path: Path, args: argparse.Namespace) -> Path:
+    """A simulated session recorded in lockstep (as fast as the renderers go, no detector)."""
+    from respecd.daemon import Daemon
+    from respecd.drivers.base import DriverContext
+    from respecd.record.lockstep import LockstepClock, LockstepLoop
+    from respecd.record.recorder import Recorder
+
+    quiet = profile.model_copy(update={"perception": profile.perception.model_copy(update={"enabled": False})})
+    config = profile.recording.model_copy(update={"enabled": True, "path": str(path), "queue_size": 65536})
+
+    async def session() -> None:
+        clock = LockstepClock(0.0)
+        recorder = Recorder(config, quiet, clock)
+        recorder.start()
+        with tempfile.TemporaryDirectory() as state:
+            context = DriverContext(seed=args.seed, simulation=getattr(quiet, "simulation", None))
+            daemon = Daemon(quiet, clock, context, state_dir=Path(state), taps=[recorder],
+                            status_sink=lambda fields, line: None)
+            task = asyncio.create_task(daemon.run(duration=args.seconds))
+            await clock.run(args.seconds)
+            await task
+
+    with asyncio.Runner(loop_factory=LockstepLoop) as runner:
+        runner.run(session())
+    return path
+
+
+def _replay(profile: Any, log: Path, work: Path, args: argparse.Namespace) -> dict[str, Any]:
+    import json
+
+    import yaml
+
+    from respecd.record.replay import run_replay
+
+    config = work / "replay-profile.yaml"
+    config.write_text(yaml.safe_dump(profile.model_dump(mode="json")))
+    report = work / "replay-report.json"
+    ns = argparse.Namespace(replay=str(log), speed="max", policy="static", report=str(report), seed=args.seed,
+                            duration=None, config=str(config), state_dir=None)
+    start = time.perf_counter()
+    run_replay(ns)
+    total = time.perf_counter() - start
+    entry = json.loads(report.read_text())["policies"]["static"]
+    return {
+        "log_s": entry["replayed_s"],
+        "loop_wall_s": entry["wall_s"],
+        "x_realtime": round(entry["replayed_s"] / entry["wall_s"], 2),
+        "total_wall_s_with_startup": round(total, 2),
+        "percepts": entry["compute"]["percepts"],
+        "inference_ms_per_log_s": entry["compute"]["inference_ms_per_s"],
+        "mean_latency_ms": entry["compute"]["mean_latency_ms"],
+    }
