@@ -11,4 +11,5 @@ BENCHES: dict[str, str] = {
     "drivers": "respecd.bench.drivers",
     "controller": "respecd.bench.controller",
     "sim": "respecd.bench.sim",
+    "replay": "respecd.bench.replay",
 }
