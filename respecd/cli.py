@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "radar-profile": ("respecd.cmd_radar_profile", "print the radar chirp cfg and its four figures"),
     "radar-dump": ("respecd.cmd_radar_dump", "decode a recorded radar data-port capture, one line per frame"),
     "log": ("respecd.cmd_log", "inspect a recorded MCAP session log: `log info LOG`"),
+    "train-policy": ("respecd.cmd_train_policy", "train the Q-table on the simulated scenarios (cached outcomes)"),
     "policy": ("respecd.cmd_policy", "print a learned Q-table as a policy: `policy show FILE`"),
 }
 

@@ -10,6 +10,7 @@ BENCHES: dict[str, str] = {
     "pipeline": "respecd.bench.pipeline",
     "drivers": "respecd.bench.drivers",
     "controller": "respecd.bench.controller",
+    "scenarios": "respecd.bench.scenarios",
     "sim": "respecd.bench.sim",
     "replay": "respecd.bench.replay",
 }

@@ -1,0 +1,102 @@
+"""The six paper scenarios under static, heuristic and RL: accuracy, compute, energy, bandwidth.
+
+``respecd bench scenarios [--json OUT] [--quick] [--log LOG]``. Runs on the simulated rover
+(held-out world seeds, never used by ``train-policy``) or, with ``--log``, counterfactually
+on a recorded session. Also writes a Markdown table (``--markdown``) and a figure
+(``--figure``). See docs/RESULTS.md for what the figures mean.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+from typing import Any
+
+QUICK_DURATION_S = 4.0
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--profile", default="builtin:sim-rover", help="profile (sensors, controller, simulation)")
+    parser.add_argument("--weights", help="detector checkpoint (default: the profile's perception.weights)")
+    parser.add_argument("--table", type=Path, help="Q-table for the rl policy (default: the shipped table)")
+    parser.add_argument("--quick", action="store_true", help=f"CI size: {QUICK_DURATION_S:g} s per scenario")
+    parser.add_argument("--duration", type=float, help="seconds per scenario (default: the profile's, 30)")
+    parser.add_argument("--samples-per-s", type=float, default=1.0, help="detector outcomes scored per second")
+    parser.add_argument("--seed", type=int, help="first world seed (default 1000: held out from training)")
+    parser.add_argument("--log", type=Path, help="run on a recorded MCAP session instead of the simulator")
+    parser.add_argument("--markdown", type=Path, help="write the Markdown table here")
+    parser.add_argument("--figure", type=Path, help="write the PNG figure here")
+    parser.add_argument("--no-cache", action="store_true", help="keep detector outcomes in memory only")
+    parser.add_argument("--cache-dir", type=Path, help="outcome cache folder (default $XDG_CACHE_HOME/respecd)")
+    parser.add_argument("--random-detector", action="store_true",
+                        help="randomly initialised detector instead of the checkpoint (smoke tests only)")
+    parser.add_argument("--latency-repeats", type=int, help="timed calls per resolution (default 5, quick 2)")
+    parser.add_argument("--progress", action="store_true", help="show a progress bar")
+
+
+def _table_path(args: argparse.Namespace) -> Path:
+    from respecd.errors import InputError
+    from respecd.experiment.setup import shipped_table_path
+
+    path = args.table or shipped_table_path()
+    if not path.is_file():
+        raise InputError(f"{path}: no Q-table (train one with `respecd train-policy`, or pass --table)")
+    return path
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    from respecd.config import load_profile
+    from respecd.experiment import latency as lat
+    from respecd.experiment.compare import run_all
+    from respecd.experiment.rollout import Piece, Rollout, controller_for
+    from respecd.experiment.setup import load_detector, make_evaluator, rgb_resolutions
+    from respecd.experiment.training import EVAL_SEED
+
+    start = time.monotonic()
+    profile = load_profile(args.profile)
+    table = _table_path(args)
+    if args.log is not None:
+        from respecd.experiment.logbench import run_log
+
+        return run_log(args, profile, table)
+    detector = load_detector(profile, args.weights, args.random_detector)
+    evaluator = make_evaluator(detector, profile, not args.no_cache, args.cache_dir)
+    duration = args.duration or (QUICK_DURATION_S if args.quick else profile.simulation.scenario_duration_s)
+    seed = EVAL_SEED if args.seed is None else args.seed
+    pieces = [Piece(name, seed + i, duration) for i, name in enumerate(profile.simulation.scenarios)]
+    rollout = Rollout(profile, evaluator, {}, args.samples_per_s)
+    repeats = args.latency_repeats or (2 if args.quick else 5)
+    resolutions = rgb_resolutions(controller_for(profile, "static"))
+    rollout.latency = lat.measure(detector, rollout.world(pieces[0]), resolutions, repeats)
+    bar = _bar(args, 3 * len(pieces) * max(1, int(round(duration / rollout.period))))
+    try:
+        result = run_all(profile, rollout, pieces, table, (lambda p, r: bar.update()) if bar else None)
+    finally:
+        if bar:
+            bar.close()
+        evaluator.cache.close()
+    result.update(latency_ms=lat.to_json(rollout.latency), duration_s_per_scenario=duration, world_seed=seed,
+                  table=str(table), detector_fingerprint=evaluator.fingerprint,
+                  cache={"hits": evaluator.cache.hits, "misses": evaluator.cache.misses},
+                  wall_s=round(time.monotonic() - start, 1))
+    _write_outputs(args, result)
+    return result
+
+
+def _bar(args: argparse.Namespace, total: int) -> Any:
+    if not args.progress:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=total, desc="bench scenarios", unit="window")
+
+
+def _write_outputs(args: argparse.Namespace, result: dict[str, Any]) -> None:
+    from respecd.experiment.report import figure, markdown
+
+    if args.markdown:
+        args.markdown.parent.mkdir(parents=True, exist_ok=True)
+        args.markdown.write_text(markdown(result), encoding="utf-8")
+    if args.figure:
+        figure(result, args.figure)

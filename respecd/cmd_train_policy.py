@@ -1,0 +1,94 @@
+"""``respecd train-policy``: learn the Q-table on the simulated scenarios, fast, on cached
+detector outcomes; save it where ``--policy exploit`` finds it and plot the learning curve."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from respecd.errors import InputError
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--profile", default="builtin:sim-rover", help="profile (sensors, controller, simulation)")
+    parser.add_argument("--weights", help="detector checkpoint (default: the profile's perception.weights)")
+    parser.add_argument("--episodes", type=int, default=40, help="episodes of the six scenarios (default 40)")
+    parser.add_argument("--seeds", type=int, default=4, help="training world seeds 0..N-1 (default 4)")
+    parser.add_argument("--min-s", type=float, default=10.0, help="shortest scenario run in an episode (s)")
+    parser.add_argument("--max-s", type=float, default=30.0, help="longest scenario run in an episode (s)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the episode order, durations and world seeds")
+    parser.add_argument("--samples-per-s", type=float, default=1.0, help="detector outcomes per scenario second")
+    parser.add_argument("--state-dir", help="state directory (default: $STATE_DIRECTORY, $XDG_STATE_HOME/respecd)")
+    parser.add_argument("--out", type=Path, help="table file (default: the profile's table in the state directory)")
+    parser.add_argument("--curve", type=Path, help="learning-curve PNG (default: beside the table)")
+    parser.add_argument("--resume", action="store_true", help="continue from the table at --out if it matches")
+    parser.add_argument("--max-minutes", type=float, help="stop after this many minutes (the table is saved)")
+    parser.add_argument("--no-cache", action="store_true", help="keep detector outcomes in memory only")
+    parser.add_argument("--cache-dir", type=Path, help="outcome cache folder (default $XDG_CACHE_HOME/respecd)")
+    parser.add_argument("--random-detector", action="store_true",
+                        help="randomly initialised detector instead of the checkpoint (smoke tests only)")
+    parser.add_argument("--latency-repeats", type=int, default=3, help="timed calls per resolution (median)")
+
+
+def _check(args: argparse.Namespace) -> None:
+    if args.episodes < 1 or args.seeds < 1:
+        raise InputError("--episodes and --seeds: expected at least 1")
+    if not 0 < args.min_s <= args.max_s:
+        raise InputError(f"--min-s/--max-s: expected 0 < min <= max, got {args.min_s}, {args.max_s}")
+    if args.samples_per_s <= 0:
+        raise InputError("--samples-per-s: expected a positive number")
+
+
+def main(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from respecd.config import load_profile
+    from respecd.control.persist import load_into, resolve_state_dir, save_table, table_path
+    from respecd.experiment import latency as lat
+    from respecd.experiment.rollout import Piece, Rollout, controller_for
+    from respecd.experiment.setup import load_detector, make_evaluator, rgb_resolutions
+    from respecd.experiment.training import TrainSettings, save_curve, train
+
+    _check(args)
+    profile = load_profile(args.profile)
+    out = args.out or table_path(resolve_state_dir(args.state_dir), profile.controller.table_file, profile.name)
+    detector = load_detector(profile, args.weights, args.random_detector)
+    evaluator = make_evaluator(detector, profile, not args.no_cache, args.cache_dir)
+    probe = controller_for(profile, "learn")
+    rollout = Rollout(profile, evaluator, {}, args.samples_per_s)
+    rollout.latency = lat.measure(detector, rollout.world(Piece("good-light-static", 0, 10.0)),
+                                  rgb_resolutions(probe), args.latency_repeats)
+    print("latency (ms):", {k: round(v["forward_ms"]) for k, v in lat.to_json(rollout.latency).items()})
+    table = probe.table
+    if args.resume and table is not None and load_into(out, table, probe.layout()):
+        print(f"resuming from {out} ({table.updates} updates, epsilon {table.epsilon:.3f})")
+    settings = TrainSettings(args.episodes, args.seeds, args.min_s, args.max_s, args.seed, args.max_minutes)
+    bar = tqdm(total=args.episodes, desc="train-policy", unit="episode")
+
+    def progress(episode: int, result) -> None:  # type: ignore[no-untyped-def]
+        cache = evaluator.cache
+        total = max(1, cache.hits + cache.misses)
+        bar.set_postfix(reward=f"{result.episode_reward[-1]:.3f}", eps=f"{result.table.epsilon:.3f}",
+                        hit=f"{cache.hits / total:.0%}")
+        bar.update()
+        save_table(out, result.table, result.layout, _info(profile, args, result, evaluator))
+
+    try:
+        result = train(profile, rollout, settings, table, progress)
+    finally:
+        bar.close()
+        evaluator.cache.close()
+    save_table(out, result.table, result.layout, _info(profile, args, result, evaluator))
+    curve = save_curve(result, args.curve or out.with_suffix(".curve.png"))
+    print(f"table: {out} ({result.table.updates} updates, {len(result.episode_reward)} episodes, "
+          f"{result.seconds:.0f} s, detector {evaluator.inference_s:.0f} s)")
+    print(f"learning curve: {curve}")
+    return 0
+
+
+def _info(profile, args, result, evaluator) -> dict:  # type: ignore[no-untyped-def]
+    return {"profile": profile.name, "policy": "learn", "trainer": "respecd train-policy",
+            "episodes": len(result.episode_reward), "decisions": result.decisions,
+            "episode_reward": [round(r, 5) for r in result.episode_reward],
+            "detector_fingerprint": evaluator.fingerprint, "seeds": args.seeds, "seed": args.seed,
+            "weights": args.weights or profile.perception.weights}

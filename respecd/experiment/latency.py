@@ -1,0 +1,54 @@
+"""Measured detector wall time per RGB resolution: the basis of every compute figure.
+
+Compute is never assumed: before a run, the real detector runs on real rendered frames at
+each RGB resolution of the action space, plain and with attribution, and the median wall
+time of a few calls is kept. A policy's compute is then ``forward time at the resolution
+it chose x inferences per second`` plus the attribution's extra time once per decision.
+The median over repeated calls resists the other processes sharing the CPU.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any
+
+from respecd.experiment.frames import frame_id, render
+from respecd.messages import SensorConfig
+from respecd.sim.world import World
+
+
+@dataclass(frozen=True)
+class Latency:
+    forward_s: float  # one inference (align + network + NMS)
+    attribution_s: float  # one inference with attribution (forward with gradients + backward)
+
+
+def measure(detector: Any, world: World, resolutions: Iterable[tuple[int, int]], repeats: int = 3,
+            t: float = 5.0) -> dict[tuple[int, int], Latency]:
+    """Median wall time of ``repeats`` calls per resolution, after one warm-up call each."""
+    table = {}
+    extra = {"thermal": SensorConfig("thermal", rate_hz=10.0, resolution=(160, 120)),
+             "radar": SensorConfig("radar", rate_hz=10.0, mode="range")}
+    for res in resolutions:
+        configs = {"rgb": SensorConfig("rgb", rate_hz=30.0, resolution=tuple(res)), **extra}  # type: ignore[arg-type]
+        frames = {m: render(world, frame_id(c, t)) for m, c in configs.items()
+                  if m in ("rgb", *detector.model.spec.aux_modalities)}
+        timings = {}
+        for attribute in (False, True):
+            detector.infer(frames, attribute)  # warm-up: allocator, first-call paths
+            runs = []
+            for _ in range(repeats):
+                start = time.perf_counter()
+                detector.infer(frames, attribute)
+                runs.append(time.perf_counter() - start)
+            timings[attribute] = statistics.median(runs)
+        table[tuple(res)] = Latency(timings[False], max(timings[True], timings[False]))
+    return table
+
+
+def to_json(table: dict[tuple[int, int], Latency]) -> dict[str, dict[str, float]]:
+    return {f"{w}x{h}": {"forward_ms": 1000 * v.forward_s, "attribution_ms": 1000 * v.attribution_s}
+            for (w, h), v in table.items()}

@@ -1,0 +1,89 @@
+"""The comparison as a Markdown table and as a figure in the spirit of the paper's: per
+scenario, the chosen setting and rate of each modality, then accuracy and load, for the
+three policies side by side."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+POLICY_COLORS = {"static": "#8c8c8c", "heuristic": "#d9a03f", "rl": "#2f6db3"}
+MODALITY_ROWS = (("rgb", "RGB rate (Hz)"), ("thermal", "thermal rate (Hz)"), ("radar", "radar rate (Hz)"),
+                 ("depth", "depth rate (Hz)"))
+
+
+def _fmt(value: Any, spec: str) -> str:
+    return "n/a" if value is None else format(value, spec)
+
+
+def markdown(result: dict[str, Any]) -> str:
+    """The per-scenario table, the overall figures and the summary."""
+    lines = ["| scenario | policy | stabilized action | mAP@0.5 | compute ms/s | core share | energy J | "
+             "bandwidth MB/s |", "|---|---|---|---:|---:|---:|---:|---:|"]
+    for row in result["scenarios"]:
+        lines.append(f"| {row['scenario']} | {row['policy']} | {row['action']} | {_fmt(row['map50'], '.3f')} | "
+                     f"{row['compute_ms_per_s']:.0f} | {row['compute_ms_per_s'] / 1000:.2f} | "
+                     f"{row['energy_j']:.1f} | {row['bandwidth_bps'] / 1e6:.2f} |")
+    lines += ["", "| policy (whole run) | mAP@0.5 | compute ms/s | core share | energy J | bandwidth MB/s |",
+              "|---|---:|---:|---:|---:|---:|"]
+    for policy, v in result.get("overall", {}).items():
+        lines.append(f"| {policy} | {_fmt(v['map50'], '.3f')} | {v['compute_ms_per_s']:.0f} | "
+                     f"{v['compute_ms_per_s'] / 1000:.2f} | {v['energy_j']:.1f} | {v['bandwidth_bps'] / 1e6:.2f} |")
+    lines.append("")
+    for name, v in result["summary"].items():
+        reduction, drop = v["compute_reduction"], v["map50_drop"]
+        percent = None if reduction is None else 100 * reduction
+        lines.append(f"- **{name.replace('_', ' ')}**: compute {_fmt(percent, '+.1f')} % less, "
+                     f"mAP@0.5 {_fmt(drop, '+.3f')} lower (absolute)")
+    return "\n".join(lines) + "\n"
+
+
+def _bars(ax: Any, scenarios: list[str], policies: list[str], values: dict[str, list[float]],
+          labels: dict[str, list[str]] | None = None) -> None:
+    width = 0.8 / len(policies)
+    x = np.arange(len(scenarios))
+    for i, policy in enumerate(policies):
+        pos = x - 0.4 + width * (i + 0.5)
+        bars = ax.bar(pos, values[policy], width, color=POLICY_COLORS.get(policy, "#555"), label=policy)
+        if labels:
+            for bar, text in zip(bars, labels[policy], strict=True):
+                ax.text(bar.get_x() + bar.get_width() / 2, bar.get_height(), text, ha="center", va="bottom",
+                        fontsize=5.5, rotation=90)
+
+
+def figure(result: dict[str, Any], path: Path, title: str = "respecd bench scenarios") -> Path:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    settings = result["settings"]
+    policies = [p for p in ("static", "heuristic", "rl") if p in settings]
+    scenarios = list(dict.fromkeys(r["scenario"] for r in result["scenarios"]))
+    rows = [(m, label) for m, label in MODALITY_ROWS if any(m in settings[p][s] for p in policies for s in scenarios)]
+    fig, axes = plt.subplots(len(rows) + 2, 1, figsize=(11, 2.0 * (len(rows) + 2)), dpi=110, sharex=True)
+    for ax, (modality, label) in zip(axes, rows, strict=False):
+        cells = {p: [settings[p][s].get(modality, {}) for s in scenarios] for p in policies}
+        _bars(ax, scenarios, policies, {p: [c.get("rate_hz", 0) for c in cells[p]] for p in policies},
+              {p: [c.get("setting", "") if c.get("setting") not in (None, "None") else "" for c in cells[p]]
+               for p in policies})
+        ax.set_ylabel(label, fontsize=8)
+        ax.set_ylim(0, 45)
+    table = {(r["scenario"], r["policy"]): r for r in result["scenarios"]}
+    ax_map, ax_cpu = axes[len(rows)], axes[len(rows) + 1]
+    _bars(ax_map, scenarios, policies, {p: [table[(s, p)]["map50"] or 0.0 for s in scenarios] for p in policies})
+    ax_map.set_ylabel("mAP@0.5", fontsize=8)
+    ax_map.set_ylim(0, 1.05)
+    _bars(ax_cpu, scenarios, policies,
+          {p: [table[(s, p)]["compute_ms_per_s"] / 1000 for s in scenarios] for p in policies})
+    ax_cpu.set_ylabel("compute (cores)", fontsize=8)
+    ax_cpu.set_xticks(np.arange(len(scenarios)), scenarios, fontsize=8, rotation=15)
+    axes[0].legend(ncol=3, fontsize=8, loc="upper right")
+    axes[0].set_title(title)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path)
+    plt.close(fig)
+    return path

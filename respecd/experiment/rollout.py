@@ -1,0 +1,191 @@
+"""A controller driven through scenario segments, one decision window at a time.
+
+This is the daemon's control loop without asyncio or wall-clock waits, built from the same
+pieces: the profile's ``Controller`` (state bins, reward, Q-table, baselines, dwell time),
+the daemon's ``Window`` of per-percept samples, the detector's decaying scene score, and
+the simulated sensors' clamping. Per decision window (``decision_period_s``):
+
+1. ``samples_per_s`` scene instants at seeded random offsets inside the window (the same
+   instants for every policy, so the comparison is paired); at each, the detector's
+   outcome on the frames the current configuration delivers (cached, see ``outcomes.py``);
+   the first instant of the window is attributed, as the daemon attributes once per decision;
+2. the window's observation -> ``Controller.step`` -> the new configuration is applied;
+3. the window's figures under the configuration that was active during it: detections vs
+   ground truth at the instant (a stale frame scores worse on a moving target), compute
+   (measured forward time x inference rate + attribution once per window), energy from the
+   profile's power model, and sensing bandwidth.
+
+The detector runs once per new detector input, so its rate is the fastest detector-input
+sensor (RGB, thermal, radar; depth when the network reads it), capped by ``sync.max_rate_hz``.
+Load is latency / ``latency_budget_s`` (``system_probe`` off, as for deterministic replay).
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from respecd.control.actions import Position
+from respecd.control.controller import Controller
+from respecd.control.features import Sample, Window
+from respecd.drivers.base import clamp_request
+from respecd.experiment.frames import frame_bytes, imu_frame, truth
+from respecd.experiment.latency import Latency
+from respecd.experiment.outcomes import Evaluator
+from respecd.messages import Decision, SensorConfig
+from respecd.perception.attribution import SceneScores
+from respecd.perception.metrics import ImageResult
+from respecd.sim.config import SimulationConfig
+from respecd.sim.scenarios import SPECS
+from respecd.sim.world import World
+
+WORLD_SEGMENT_S = 3600.0
+
+@dataclass(frozen=True)
+class Piece:
+    """One run of one scenario: which, with which world seed, for how long."""
+
+    scenario: str
+    seed: int
+    duration_s: float
+
+
+@dataclass
+class WindowRecord:
+    """One decision window: what ran, what it cost, what it saw."""
+
+    scenario: str
+    t: float  # end of the window, seconds since the rollout began
+    position: Position  # the configuration active during the window
+    decision: Decision  # the step taken at the end of the window
+    compute_ms: float  # inference wall time spent per second in this window
+    energy_j: float
+    bandwidth_bps: float
+    images: list[ImageResult] = field(default_factory=list)
+
+
+def controller_for(profile: Any, policy: str) -> Controller:
+    """The controller the daemon would build for ``profile`` over simulated sensors."""
+    from respecd.drivers.sim import CAPABILITIES
+
+    caps = {s.name: CAPABILITIES[s.modality] for s in profile.sensors if s.driver == "sim"}
+    config = profile.controller.model_copy(update={"policy": policy, "system_probe": False})
+    return Controller.from_profile(config, profile, caps)
+
+
+class Rollout:
+    """Runs a controller over pieces on cached detector outcomes."""
+
+    def __init__(self, profile: Any, evaluator: Evaluator, latency: dict[tuple[int, int], Latency],
+                 samples_per_s: float = 1.0) -> None:
+        from respecd.drivers.sim import CAPABILITIES
+
+        self.profile = profile
+        self.evaluator = evaluator
+        self.latency = latency
+        self.period = profile.controller.decision_period_s
+        self.samples = max(1, int(round(samples_per_s * self.period)))
+        self.sensors = [s for s in profile.sensors if s.enabled]
+        self.caps = {s.name: CAPABILITIES[s.modality] for s in self.sensors if s.driver == "sim"}
+        self.powers = {s.name: s.power for s in self.sensors}
+        self._worlds: dict[Piece, World] = {}
+
+    def world(self, piece: Piece) -> World:
+        world = self._worlds.get(piece)
+        if world is None:
+            # the duration is left out of the world (a fixed long segment), so that the same
+            # (scenario, seed) is the same world, and hits the same cache entries, at any length
+            sim = self.profile.simulation.model_copy(
+                update={"scenarios": [piece.scenario], "scenario_duration_s": WORLD_SEGMENT_S, "loop": False,
+                        "seed": None})
+            world = self._worlds[piece] = World(SimulationConfig.model_validate(sim.model_dump()), piece.seed)
+        return world
+
+    def initial(self) -> dict[str, SensorConfig]:
+        return {s.name: clamp_request(self.caps[s.name], s.initial_request()) if s.name in self.caps
+                else s.initial_request() for s in self.sensors}
+
+    def run(self, controller: Controller, pieces: Iterable[Piece],
+            on_window: Callable[[WindowRecord], None] | None = None) -> list[WindowRecord]:
+        cfg = controller.config
+        window = Window(cfg.window_s, cfg.latency_budget_s)
+        det = self.evaluator.detector
+        scores = SceneScores(det.channels, det.config.attribution_decay_s)
+        applied = self.initial()
+        controller.position = controller.space.nearest(applied)
+        records: list[WindowRecord] = []
+        offset = 0.0
+        for piece in pieces:
+            world = self.world(piece)
+            steps = max(1, int(round(piece.duration_s / self.period)))
+            rng = np.random.default_rng([piece.seed, zlib.crc32(piece.scenario.encode()), 5])
+            static = not SPECS[piece.scenario].moving  # the scene never changes: noise slots, see frames.py
+            for k in range(steps):
+                by_modality = self._by_modality(applied)
+                offsets = (np.arange(self.samples) + rng.uniform(0.02, 0.98, self.samples)) / self.samples
+                images, points = [], []
+                for j, u in enumerate(offsets):
+                    t = (k + u) * self.period
+                    slot = k * self.samples + j if static else None
+                    image, n_points = self._sample(world, by_modality, t, offset, j == 0, window, scores, slot)
+                    images.append(image)
+                    points.append(n_points or 0.0)
+                now = offset + (k + 1) * self.period
+                position = controller.position
+                decision = controller.step(window.observe(now), applied)
+                record = self._record(piece.scenario, now, position, decision, applied, images, float(np.mean(points)))
+                applied = self._apply(applied, controller, decision)
+                records.append(record)
+                if on_window is not None:
+                    on_window(record)
+            offset += steps * self.period
+        return records
+
+    def _by_modality(self, applied: dict[str, SensorConfig]) -> dict[str, SensorConfig]:
+        out: dict[str, SensorConfig] = {}
+        for s in self.sensors:
+            out.setdefault(s.modality, applied[s.name])
+        return out
+
+    def _sample(self, world: World, configs: dict[str, SensorConfig], t: float, offset: float, attribute: bool,
+                window: Window, scores: SceneScores, slot: int | None) -> tuple[ImageResult, float | None]:
+        out = self.evaluator.outcome(world, configs, t, attribute, slot)
+        contributions = scores.update(offset + t, out.contributions) if attribute else None
+        res = configs["rgb"].resolution
+        lat = self.latency[res]
+        imu = imu_frame(world, t).data
+        window.add(Sample(offset + t, out.conf_agg, lat.attribution_s if attribute else lat.forward_s,
+                          out.luminance, out.frame_diff, float(np.linalg.norm(imu[3:6])), out.radar_points, 0,
+                          contributions))
+        boxes, ignore = truth(world, t, res)
+        return ImageResult(out.boxes, out.scores, boxes, ignore), out.radar_points
+
+    def detector_rate(self, configs: dict[str, SensorConfig]) -> float:
+        rates = [c.rate_hz for m, c in configs.items() if m in self.evaluator.inputs and c.enabled]
+        sync = self.profile.sync
+        return min(max(max(rates, default=sync.min_rate_hz), sync.min_rate_hz), sync.max_rate_hz)
+
+    def _record(self, scenario: str, now: float, position: Position, decision: Decision,
+                applied: dict[str, SensorConfig], images: list[ImageResult], points: float) -> WindowRecord:
+        by_modality = self._by_modality(applied)
+        lat = self.latency[by_modality["rgb"].resolution]
+        # one attribution per window replaces one plain inference: its extra time is added once
+        compute_s = lat.forward_s * self.detector_rate(by_modality) * self.period + (lat.attribution_s - lat.forward_s)
+        energy = sum(self.powers[n].watts(c) for n, c in applied.items()) * self.period
+        bandwidth = sum(frame_bytes(c, points) * c.rate_hz for c in applied.values() if c.enabled)
+        return WindowRecord(scenario, now, position, decision, 1000.0 * compute_s / self.period, energy, bandwidth,
+                            images)
+
+    def _apply(self, applied: dict[str, SensorConfig], controller: Controller,
+               decision: Decision) -> dict[str, SensorConfig]:
+        """What the simulated drivers answer to the decision's requests (they clamp, like apply())."""
+        out = dict(applied)
+        for slot, request in zip(controller.space.slots, decision.configs, strict=True):
+            result = clamp_request(self.caps[slot.name], request) if slot.name in self.caps else request
+            if result != applied.get(slot.name):
+                out[slot.name] = result
+        return out

@@ -1,0 +1,68 @@
+"""Building what every experiment command needs: the profile, the detector, the evaluator
+with its cache, and the measured latency table."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import structlog
+
+from respecd.experiment.cache import OutcomeCache, fingerprint, model_hash
+from respecd.experiment.outcomes import Evaluator
+
+log = structlog.get_logger(__name__)
+
+SHIPPED_TABLE = "default-qtable.npz"  # inside respecd/control/tables/
+
+
+def shipped_table_path() -> Path:
+    from importlib import resources
+
+    return Path(str(resources.files("respecd.control") / "tables" / SHIPPED_TABLE))
+
+
+def load_detector(profile: Any, weights: str | None = None, random_init: bool = False, seed: int = 0) -> Any:
+    """The profile's detector (``weights`` overrides its checkpoint); ``random_init`` for tests."""
+    import torch
+
+    from respecd.perception.detector import FusionDetector
+    from respecd.perception.model import FusionNet
+    from respecd.perception.stage import calibration_from_profile
+
+    torch.set_num_threads(profile.perception.torch_threads)
+    config = profile.perception
+    if weights:
+        config = config.model_copy(update={"weights": weights})
+    calibration = calibration_from_profile(profile)
+    if random_init:
+        torch.manual_seed(seed)
+        return FusionDetector(FusionNet(config.model), config, calibration)
+    return FusionDetector.load(config, calibration)
+
+
+def perception_identity(detector: Any, profile: Any) -> dict[str, Any]:
+    """The perception settings that shape an outcome (not device or thread count)."""
+    from respecd.perception.stage import calibration_from_profile
+
+    settings = detector.config.model_dump(mode="json", exclude={"device", "torch_threads", "weights",
+                                                                "attribution_every_s"})
+    calibration = {k: (v.model_dump(mode="json") if v is not None else None)
+                   for k, v in calibration_from_profile(profile).items()}
+    return {"settings": settings, "calibration": calibration}
+
+
+def make_evaluator(detector: Any, profile: Any, use_cache: bool = True, directory: Path | None = None) -> Evaluator:
+    fp = fingerprint(model_hash(detector.model), perception_identity(detector, profile))
+    cache = OutcomeCache.for_fingerprint(fp, directory, enabled=use_cache)
+    log.info("outcome_cache", path=str(cache.path) if cache.path else None, fingerprint=fp, entries=len(cache))
+    return Evaluator(detector, cache, fp)
+
+
+def rgb_resolutions(controller: Any) -> list[tuple[int, int]]:
+    """Every RGB resolution the controller's action space can select."""
+    out: list[tuple[int, int]] = []
+    for slot in controller.space.slots:
+        if slot.modality == "rgb":
+            out += [tuple(s) for s in slot.settings if isinstance(s, tuple)]  # type: ignore[misc]
+    return sorted(set(out), key=lambda r: r[0] * r[1])
