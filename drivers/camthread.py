@@ -253,6 +253,7 @@ class ThreadedDriver(Driver):
     _handoff: Handoff | None = None
     _seq: int = 0
     _seen_drops: int = 0
+    _ended: bool = False  # frames() saw the worker's last item
 
     @property
     def stall_timeout_s(self) -> float:
@@ -264,7 +265,9 @@ class ThreadedDriver(Driver):
 
     async def start(self) -> None:
         if self._worker is not None:
-            return
+            if not self._ended and not self._worker.finished.done():
+                return  # already running
+            await self.stop()  # the stream ended (error, end of file): start afresh
         handoff = Handoff(asyncio.get_running_loop(), maxsize=2, block=self.back_pressure)
         stop = threading.Event()
         worker = Worker(self.name, self.make_source(stop), handoff, stop)
@@ -276,7 +279,7 @@ class ThreadedDriver(Driver):
             await self._join(worker)
             log.debug("driver_start_failed", sensor=self.name, error=str(err))  # the supervisor logs it once
             raise
-        self._worker, self._handoff, self._seen_drops = worker, handoff, 0
+        self._worker, self._handoff, self._seen_drops, self._ended = worker, handoff, 0, False
         log.debug("driver_started", sensor=self.name, driver=self.key)  # lifecycle is logged by the supervisor
 
     async def stop(self) -> None:
@@ -307,7 +310,10 @@ class ThreadedDriver(Driver):
             except asyncio.TimeoutError:
                 if self._worker is not worker or not self.applied.enabled:
                     continue
+                self._ended = True
                 raise DriverTimeoutError(f"{self.name}: no frame for {self.stall_timeout_s:g} s") from None
+            if item is END or isinstance(item, BaseException):
+                self._ended = True
             if item is END:
                 return
             if isinstance(item, BaseException):

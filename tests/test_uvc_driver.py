@@ -204,3 +204,15 @@ sensors:
     with pytest.raises(ConfigError) as err:
         load_profile(path)
     assert any(p.startswith(f"{path}:3: sensors.0.fourc: unknown key") for p in err.value.problems)
+
+
+async def test_start_after_the_stream_ended_starts_afresh(video: Path) -> None:
+    driver = UVCDriver(config(video), MonotonicClock())
+    await driver.start()
+    try:
+        first = [f async for f in driver.frames()]  # ends with the file
+        await driver.start()  # no stop in between: the ended worker is replaced
+        frame = await asyncio.wait_for(anext(driver.frames()), 5)
+    finally:
+        await driver.stop()
+    assert len(first) == FRAMES and frame.meta["file_frame"] == 0 and frame.seq == FRAMES
