@@ -17,7 +17,7 @@ from respecd.drivers import DRIVERS, driver_class
 from respecd.drivers.flirone import FlirOneConfig, FlirOneDriver
 from respecd.drivers.flirone_protocol import build_frame, encode_pro_thermal
 from respecd.drivers.flirone_usb import RecordedTransport
-from respecd.errors import DriverUnavailableError
+from respecd.errors import DriverTimeoutError, DriverUnavailableError
 from respecd.messages import Frame, SensorConfig
 
 
@@ -191,3 +191,29 @@ def test_config_checks_stream_and_modality() -> None:
     with pytest.raises(pydantic.ValidationError):
         FlirOneConfig(name="x", rate_hz=40)
     assert FlirOneConfig(name="x", stream="visible", modality="rgb").modality == "rgb"
+
+
+class SilentAfter(RecordedTransport):
+    """Recorded reads, then a camera that stays attached but sends nothing (bulk timeouts)."""
+
+    def read(self, size: int, timeout_ms: int) -> bytes:
+        chunk = super().read(size, timeout_ms)
+        if not chunk:
+            threading.Event().wait(timeout_ms / 1000)
+        return chunk
+
+    @property
+    def exhausted(self) -> bool:
+        return False
+
+
+async def test_silent_camera_is_a_stall(chunks: list[bytes]) -> None:
+    driver = FlirOneDriver(config(stall_timeout_s=0.3), MonotonicClock(), transport=SilentAfter(chunks[:20]))
+    await driver.start()
+    got = 0
+    with pytest.raises(DriverTimeoutError, match="no frame for 0.3 s"):
+        async with asyncio.timeout(10):
+            async for _ in driver.frames():
+                got += 1
+    await driver.stop()
+    assert got >= 1 and worker_threads() == []
