@@ -173,9 +173,10 @@ class IWR6843Driver(Driver):
     async def _switch(self, request: SensorConfig) -> SensorConfig:
         """Send the cfg for ``request`` unless the radar already runs it. Caller holds the lock."""
         planned, profile = self._plan(request)
+        if self._cli is None:  # between reconnect attempts: the reconnect sends ``_wanted``
+            return replace(planned, notes=(*planned.notes, "radar disconnected: applied when it is back"))
         if profile == self.profile:
             return planned
-        assert self._cli is not None
         c = self.config
         lines = ["sensorStop"] if profile is None else cfg.render(profile, c.board, c.range_profile, self._base)
         self.health.paused = True

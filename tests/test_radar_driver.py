@@ -252,11 +252,14 @@ async def test_unplug_reconnects_with_backoff_and_reconfigures(tmp_path: Path) -
         async with asyncio.timeout(5):
             while not driver.health.errors or driver.health.errors < 2:  # read error, then absent ports
                 await asyncio.sleep(0.02)
+        offline = await driver.apply(SensorConfig(modality="radar", rate_hz=20, mode="velocity"))
+        assert any("disconnected" in note for note in offline.notes) and driver.health.paused
         fake = FakeRadar(tmp_path, frames)
         async with asyncio.timeout(5):
             while driver.health.restarts < 1:
                 await asyncio.sleep(0.02)
-        assert fake.commands[-1] == "sensorStart" and len(await _take(driver, 3)) == 3
+        assert fake.commands[-1] == "sensorStart" and "frameCfg 0 2 64 0 50 1 0" in fake.commands
+        assert driver.applied.mode == "velocity" and len(await _take(driver, 3)) == 3
     finally:
         await driver.stop()
         fake.unplug()
