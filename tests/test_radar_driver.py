@@ -332,3 +332,18 @@ def test_config_checks_antennas_and_defaults() -> None:
     driver = IWR6843Driver(config, MonotonicClock())
     caps = driver.capabilities
     assert caps.modes == ("range", "velocity") and caps.min_rate_hz == 1 and caps.max_rate_hz == 30
+
+
+def test_profile_yaml_entry_loads_and_errors_name_the_line(tmp_path: Path) -> None:
+    from respecd.config import load_profile
+    from respecd.errors import ConfigError
+
+    good = tmp_path / "radar.yaml"
+    good.write_text("name: r\nsensors:\n  - driver: iwr6843\n    name: radar\n    mode: velocity\n    rate_hz: 15\n")
+    entry = load_profile(good).sensors[0]
+    assert isinstance(entry, IWR6843Config) and entry.mode == "velocity" and entry.data_baud == 921600
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: r\nsensors:\n  - driver: iwr6843\n    name: radar\n    board: aop\n    data_baud: 9600\n")
+    with pytest.raises(ConfigError) as err:
+        load_profile(bad)
+    assert any(line.startswith(f"{bad}:6: sensors.0.data_baud") for line in err.value.problems)
