@@ -32,6 +32,9 @@ class RecordingConfig(StrictModel):
     flush_s: float = Field(
         2.0, gt=0, le=600, description="Close the open chunk at least this often (s of session time), bounding loss."
     )
+    fsync: bool = Field(
+        True, description="fsync after each periodic flush: a power cut (not just a crash) keeps what was flushed."
+    )
     compression: Literal["zstd", "lz4", "none"] = Field("zstd", description="Chunk compression.")
     rotate_mib: float = Field(
         512.0, gt=0, le=1 << 20, description="Start a new file once the current one reaches this size (MiB)."

@@ -21,6 +21,7 @@ import numpy as np
 from respecd.messages import Bundle, Decision, Frame, Percept, SensorConfig
 
 IOU_MATCH = 0.5
+MIN_VISIBLE = 0.3  # as respecd.perception.data: a person less visible than this is "ignore" truth
 REFERENCE_MAX_AGE_S = 0.2  # a reference older than this at a percept's time is not used
 
 
@@ -39,6 +40,16 @@ def boxes_of(value: Any) -> np.ndarray:
     return np.asarray(rows, dtype=np.float64).reshape(-1, 4)
 
 
+def split_truth(value: Any) -> tuple[np.ndarray, np.ndarray]:
+    """(boxes to find, boxes to ignore): the simulator's mostly hidden people are neither
+    required nor false positives when found (the detector's own evaluation rule)."""
+    if not isinstance(value, (list, tuple)):
+        return boxes_of(value), np.zeros((0, 4))
+    hidden = [g for g in value if isinstance(g, dict) and float(g.get("visible", 1.0)) < MIN_VISIBLE]
+    shown = [g for g in value if not (isinstance(g, dict) and float(g.get("visible", 1.0)) < MIN_VISIBLE)]
+    return boxes_of(shown), boxes_of(hidden)
+
+
 def iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Pairwise IoU of (N, 4) and (M, 4) boxes -> (N, M)."""
     x1 = np.maximum(a[:, None, 0], b[None, :, 0])
@@ -51,8 +62,18 @@ def iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return inter / np.maximum(area_a[:, None] + area_b[None, :] - inter, 1e-9)
 
 
-def match(detected: np.ndarray, reference: np.ndarray) -> tuple[int, int, int]:
-    """(true positives, false positives, false negatives); ``detected`` sorted best first."""
+def match(detected: np.ndarray, reference: np.ndarray, ignore: np.ndarray | None = None) -> tuple[int, int, int]:
+    """(true positives, false positives, false negatives); ``detected`` sorted best first.
+
+    Detections of an ``ignore`` box (IoU >= 0.5) that match nothing else do not count.
+    """
+    if ignore is not None and len(ignore) and len(detected):
+        if len(reference):
+            best = iou(detected, reference).max(axis=1)
+            keep = (best >= IOU_MATCH) | (iou(detected, ignore).max(axis=1) < IOU_MATCH)
+        else:
+            keep = iou(detected, ignore).max(axis=1) < IOU_MATCH
+        detected = detected[keep]
     if len(detected) == 0 or len(reference) == 0:
         return 0, len(detected), len(reference)
     overlaps = iou(detected, reference)
@@ -73,9 +94,9 @@ class Reference:
 
     kind: str  # "ground_truth" | "log_detections" | "none"
     times: list[float] = field(default_factory=list)
-    boxes: list[np.ndarray] = field(default_factory=list)
+    boxes: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)  # (to find, to ignore)
 
-    def at(self, t: float) -> np.ndarray | None:
+    def at(self, t: float) -> tuple[np.ndarray, np.ndarray] | None:
         i = bisect.bisect_right(self.times, t + 1e-9) - 1
         if i < 0 or t - self.times[i] > REFERENCE_MAX_AGE_S:
             return None
@@ -92,13 +113,13 @@ def build_reference(session: Any, rgb_sensor: str | None) -> Reference:
             if "gt" not in meta:
                 break
             ref.times.append(float(extra["t"]))
-            ref.boxes.append(boxes_of(meta["gt"]))
+            ref.boxes.append(split_truth(meta["gt"]))
         if ref.times:
             return ref
     ref = Reference("log_detections")
     for msg in session.json_messages("/respecd/percept"):
         ref.times.append(float(msg["t"]))
-        ref.boxes.append(boxes_of(msg.get("detections")))
+        ref.boxes.append((boxes_of(msg.get("detections")), np.zeros((0, 4))))
     return ref if ref.times else Reference("none")
 
 
@@ -171,12 +192,13 @@ class Collector:
         scale = self._scale(rgb)
         detected = boxes_of([d.box for d in sorted(percept.detections, key=lambda d: -d.confidence)]) * scale
         if rgb is not None and "gt" in rgb.meta and self.reference.kind == "ground_truth":
-            reference = boxes_of(rgb.meta["gt"]) * scale  # the frame's own truth, resized with it
+            find, hidden = split_truth(rgb.meta["gt"])  # the frame's own truth, resized with it
+            reference: tuple[np.ndarray, np.ndarray] | None = (find * scale, hidden * scale)
         else:
             reference = self.reference.at(percept.t)
         if reference is None:
             return
-        tp, fp, fn = match(detected, reference)
+        tp, fp, fn = match(detected, *reference)
         self.tp, self.fp, self.fn = self.tp + tp, self.fp + fp, self.fn + fn
 
     def _scale(self, rgb: Frame | None) -> np.ndarray:

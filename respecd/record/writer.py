@@ -8,6 +8,7 @@ open chunk regularly: a file cut by a power loss keeps everything up to the last
 from __future__ import annotations
 
 import json
+import os
 from datetime import datetime, timezone
 from importlib import metadata
 from pathlib import Path
@@ -91,7 +92,9 @@ class SegmentWriter:
         self._writer.add_message(channel_id, log_time=log_ns, data=payload, publish_time=log_ns)
         self.messages += 1
         if t - self._last_flush >= self.config.flush_s:
-            self._writer.flush()
+            self._writer.flush()  # closes the open chunk: readable after a crash from here on
+            if self.config.fsync:
+                os.fsync(self._file.fileno())  # ... and after a power cut (page cache on disk)
             self._last_flush = t
         too_big = self._file.tell() >= self.config.rotate_mib * 1024 * 1024
         too_old = self.config.rotate_s > 0 and t - self._segment_t0 >= self.config.rotate_s
