@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from mcap.reader import make_reader
 
 from respecd.cli import main
 
@@ -33,6 +34,23 @@ def session_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
             "--log-level", "warning", "--log-format", "json"]
     assert main(argv) == 0
     return log
+
+
+def test_recorded_session_opens_with_the_mcap_reader(session_log: Path) -> None:
+    schemas: dict[str, set[str]] = {}
+    with open(session_log, "rb") as f:
+        reader = make_reader(f)
+        for schema, channel, message in reader.iter_messages():
+            schemas.setdefault(channel.topic, set()).add(schema.name)
+            body = json.loads(message.data)
+            if schema.name.startswith("foxglove."):
+                assert set(json.loads(schema.data)["properties"]) >= set(body) - {"respecd"}
+        profile = {m.name: m.metadata for m in reader.iter_metadata()}["respecd.profile"]
+    assert json.loads(profile["json"])["name"] == "sim-rover-test"
+    assert schemas["/sensors/rgb"] == {"foxglove.CompressedImage"}
+    assert schemas["/sensors/thermal"] == {"foxglove.RawImage"}
+    assert schemas["/sensors/radar"] == {"foxglove.PointCloud"}
+    assert {"/respecd/decision", "/respecd/sync", "/respecd/config"} <= set(schemas)
 
 
 def _replay(log: Path, report: Path, *extra: str) -> int:
