@@ -265,6 +265,20 @@ async def test_unplug_reconnects_with_backoff_and_reconfigures(tmp_path: Path) -
         fake.unplug()
 
 
+async def test_stop_during_an_outage_returns_promptly(tmp_path: Path) -> None:
+    fake = FakeRadar(tmp_path, _capture_frames())
+    driver = IWR6843Driver(_config(fake, reconnect_initial_s=5.0), MonotonicClock())
+    await driver.start()
+    await _take(driver, 1)
+    fake.unplug()
+    async with asyncio.timeout(5):
+        while driver.health.errors < 2:  # read error, then the first reconnect found no ports
+            await asyncio.sleep(0.02)
+    started = time.monotonic()
+    await driver.stop()  # the 5-s backoff sleep must not delay it
+    assert time.monotonic() - started < 2.0 and driver.health.paused
+
+
 async def test_silent_stream_is_detected_and_restarted(radar: FakeRadar) -> None:
     driver = IWR6843Driver(_config(radar, stall_timeout_s=0.2), MonotonicClock())
     await driver.start()
