@@ -71,12 +71,12 @@ class ReplayDriver(_Driver):
         super().__init__(config, clock, context)
         self.source = config.source or config.name
         self._frames: Iterator[Frame] | None = None
-        self._decimator = Decimator(self.applied.rate_hz)
         self._stopped = asyncio.Event()
         self._parser: Any = None
         self.served = 0
         self.dropped_by_rate = 0
         self.applied = clamp_request(self.capabilities, config.initial_request())
+        self._decimator = Decimator(self.applied.rate_hz)
 
     @property
     def capabilities(self) -> Capabilities:

@@ -77,13 +77,18 @@ class LockstepClock(ManualClock):
         self.steps += 1
         return t
 
-    async def run(self, until: float, on_step: Callable[[float], None] | None = None) -> None:
-        """Drive time to ``until`` (or until nothing is left to wake)."""
+    async def run(
+        self,
+        until: float,
+        on_step: Callable[[float], None] | None = None,
+        done: Callable[[], bool] | None = None,
+    ) -> None:
+        """Drive time to ``until``, until nothing is left to wake, or until ``done()``."""
         loop = asyncio.get_running_loop()
         while True:
             await settle(loop)
             deadline = self.next_deadline()
-            if deadline is None or deadline > until:
+            if deadline is None or deadline > until or (done is not None and done()):
                 return
             t = self.wake_next()
             if on_step is not None:

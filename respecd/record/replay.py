@@ -153,7 +153,7 @@ class _Replay:
 
         try:
             if lockstep:
-                await clock.run(end, on_step=progress)
+                await clock.run(end, on_step=progress, done=task.done)
             else:
                 while not task.done():
                     progress(clock.now())
