@@ -12,7 +12,7 @@ from __future__ import annotations
 import asyncio
 import math
 import time
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import AsyncIterator, Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from typing import Literal
@@ -64,7 +64,7 @@ class SimDriver(Driver):
         self._world: World | None = None
         self._executor: ThreadPoolExecutor | None = None
         self._stopped = asyncio.Event()
-        self._changed = asyncio.Event()  # set by apply, so a disabled sensor wakes up
+        self._wake = asyncio.Event()  # set by apply() and stop(): a sleeping frames() re-reads the setting
         self._cost_s: dict[tuple, float] = {}  # measured render time per setting
         self._segment = -1  # the scenario segment last rendered (a new one builds backgrounds)
         self._modality_index = MODALITIES.index(self.modality)
@@ -91,6 +91,7 @@ class SimDriver(Driver):
         if self._stopped.is_set():
             return
         self._stopped.set()
+        self._wake.set()
         if self._executor is not None:
             self._executor.shutdown(wait=False)  # the worker ends after its render; frames() then returns
             self._executor = None
@@ -110,30 +111,37 @@ class SimDriver(Driver):
                 notes=list(applied.notes),
             )
         self.applied = applied
-        self._changed.set()
+        self._wake.set()
         return applied
 
     async def frames(self) -> AsyncIterator[Frame]:
         world = self.world
         seq, last_t = 0, None
-        while not self._stopped.is_set():
-            if not self.applied.enabled:
-                if await self._race(self._wait_enabled()) is None:
-                    return
-                last_t = None  # a re-enabled sensor starts on the next slot from now
-                continue
-            due = self._next_due(last_t, self.applied.rate_hz)
-            self._changed.clear()
-            woke = await self._race(self.clock.sleep_until(due), self._changed.wait())
-            if woke is None:
-                return
-            if woke == 1:
-                continue  # apply() changed the setting while we slept: recompute the due time
-            frame = await self._frame(world, due, seq, self.applied)
-            if frame is None or self._stopped.is_set():
-                return  # stopped while the frame rendered
-            yield frame  # the supervisor counts it in health
-            seq, last_t = seq + 1, due
+        waker: asyncio.Future | None = None  # one waiter on _wake, kept across frames until it fires
+        sleeper: asyncio.Future | None = None
+        try:
+            while not self._stopped.is_set():
+                if waker is None or waker.done():
+                    self._wake.clear()
+                    waker = asyncio.ensure_future(self._wake.wait())
+                if not self.applied.enabled:
+                    await waker  # until apply() or stop()
+                    last_t = None  # a re-enabled sensor starts on the next slot from now
+                    continue
+                due = self._next_due(last_t, self.applied.rate_hz)
+                sleeper = asyncio.ensure_future(self.clock.sleep_until(due))
+                await asyncio.wait((sleeper, waker), return_when=asyncio.FIRST_COMPLETED)
+                if not sleeper.done() or self._stopped.is_set():
+                    continue  # woken by apply() or stop(): re-read the setting
+                frame = await self._frame(world, due, seq, self.applied)
+                if frame is None or self._stopped.is_set():
+                    return  # stopped while the frame rendered
+                yield frame  # the supervisor counts it in health
+                seq, last_t = seq + 1, due
+        finally:
+            for future in (waker, sleeper):
+                if future is not None and not future.done():
+                    future.cancel()
 
     def _next_due(self, last_t: float | None, rate: float) -> float:
         """The next slot k / rate of the world-time grid after the last frame.
@@ -151,26 +159,6 @@ class SimDriver(Driver):
             self.health.drops += newest - k
             k = newest
         return k / rate
-
-    async def _wait_enabled(self) -> None:
-        while not self.applied.enabled:
-            self._changed.clear()
-            await self._changed.wait()
-
-    async def _race(self, *awaitables: Awaitable[object]) -> int | None:
-        """Index of the first of ``awaitables`` to finish; None when stop came first."""
-        tasks = [asyncio.ensure_future(a) for a in awaitables]
-        stopper = asyncio.ensure_future(self._stopped.wait())
-        try:
-            await asyncio.wait([*tasks, stopper], return_when=asyncio.FIRST_COMPLETED)
-        finally:
-            for task in (*tasks, stopper):
-                if not task.done():
-                    task.cancel()
-            await asyncio.gather(*tasks, stopper, return_exceptions=True)
-        if self._stopped.is_set():
-            return None
-        return next((i for i, t in enumerate(tasks) if t.done() and not t.cancelled()), None)
 
     async def _frame(self, world: World, t: float, seq: int, applied: SensorConfig) -> Frame | None:
         state = world.state_at(t)

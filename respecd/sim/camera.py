@@ -16,8 +16,8 @@ from respecd.drivers.base import Intrinsics
 from respecd.sim.state import Occluder, SceneState, Target
 
 NEAR_M = 0.3  # nothing nearer than this is projected
-_GRID_U = np.linspace(-0.45, 0.45, 9)  # sample points across a person's width (fraction of width)
-_GRID_V = np.linspace(-0.47, 0.47, 17)  # ... and height
+# 9 x 17 sample points over a person's body, as fractions of width and height (built once)
+_GRID_U, _GRID_V = (g.ravel() for g in np.meshgrid(np.linspace(-0.45, 0.45, 9), np.linspace(-0.47, 0.47, 17)))
 
 
 @dataclass(frozen=True, slots=True)
@@ -57,8 +57,7 @@ def _samples(target: Target) -> tuple[np.ndarray, np.ndarray, float]:
     """Points spread over the person's body (x, y arrays at depth z)."""
     x, y, z = target.position
     w, h = target.size
-    xs, ys = np.meshgrid(x + _GRID_U * w, y + _GRID_V * h)
-    return xs.ravel(), ys.ravel(), z
+    return x + _GRID_U * w, y + _GRID_V * h, z
 
 
 def blocked_mask(
@@ -82,7 +81,7 @@ def smoke_opacity(xs: np.ndarray, ys: np.ndarray, zs: np.ndarray, occluders: tup
     clear = np.ones(np.shape(xs), dtype=np.float64)
     for occ in occluders:
         if occ.kind == "smoke":
-            clear *= 1.0 - occ.rgb_opacity * blocked_mask(xs, ys, zs, (occ,), "smoke")
+            clear[blocked_mask(xs, ys, zs, (occ,), "smoke")] *= 1.0 - occ.rgb_opacity
     return 1.0 - clear
 
 
@@ -102,6 +101,7 @@ def ground_truth(state: SceneState, rgb_resolution: tuple[int, int]) -> list[dic
     cam = Camera.at(state.intrinsics, rgb_resolution)
     out: list[dict] = []
     bodies = {tg.id: _as_blocker(tg) for tg in state.targets}
+    has_smoke = any(occ.kind == "smoke" for occ in state.occluders)
     for target in sorted(state.targets, key=lambda tg: tg.id):
         if target.position[2] <= NEAR_M:
             continue
@@ -116,13 +116,14 @@ def ground_truth(state: SceneState, rgb_resolution: tuple[int, int]) -> list[dic
         seen = (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
         others = tuple(body for tid, body in bodies.items() if tid != target.id)
         seen &= ~blocked_mask(xs, ys, zs, state.occluders + others, "solid")
-        smoke = smoke_opacity(xs, ys, zs, state.occluders)
+        smoky = has_smoke and bool(seen.any())
+        smoke = float(smoke_opacity(xs, ys, zs, state.occluders)[seen].mean()) if smoky else 0.0
         out.append(
             {
                 "id": target.id,
                 "box": (bx1, by1, bx2, by2),
                 "visible": float(seen.mean()),
-                "smoke": float(smoke[seen].mean()) if seen.any() else 0.0,
+                "smoke": smoke,
                 "distance_m": target.distance_m,
                 "speed_mps": target.speed_mps,
             }
