@@ -18,6 +18,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "check-config": ("respecd.cmd_config", "validate profiles; print FILE:LINE: problems, exit 2 if any"),
     "schema": ("respecd.cmd_schema", "print the profile JSON Schema (for yaml-language-server)"),
     "bench": ("respecd.cmd_bench", "run a benchmark, print figures, write JSON"),
+    "train": ("respecd.cmd_train", "train the fusion detector on the simulated rover or an LLVIP-layout folder"),
+    "eval": ("respecd.cmd_eval", "mAP with/without each modality and mean contributions per condition"),
     "radar-profile": ("respecd.cmd_radar_profile", "print the radar chirp cfg and its four figures"),
     "radar-dump": ("respecd.cmd_radar_dump", "decode a recorded radar data-port capture, one line per frame"),
     "log": ("respecd.cmd_log", "inspect a recorded MCAP session log: `log info LOG`"),

@@ -9,6 +9,7 @@ from __future__ import annotations
 BENCHES: dict[str, str] = {
     "pipeline": "respecd.bench.pipeline",
     "drivers": "respecd.bench.drivers",
+    "inference": "respecd.bench.inference",
     "controller": "respecd.bench.controller",
     "scenarios": "respecd.bench.scenarios",
     "sim": "respecd.bench.sim",

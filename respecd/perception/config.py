@@ -1,10 +1,51 @@
-"""Profile section ``perception:``."""
+"""Profile section ``perception:``.
+
+``model`` describes the network's shape; it must match the checkpoint (the loader says
+which field differs). The defaults are the shipped ``builtin:sim-rover`` checkpoint.
+"""
 
 from __future__ import annotations
 
-from pydantic import Field
+from typing import Literal
+
+from pydantic import Field, model_validator
 
 from respecd.drivers.base import StrictModel
+
+AuxModality = Literal["thermal", "radar", "depth"]
+
+
+class ModelSpec(StrictModel):
+    """Shape of the two-backbone fusion detector (see ``respecd/perception/model.py``).
+
+    Widths are per stage P1..P5 of each backbone (YOLOv8n uses 16, 32, 64, 128, 256 for
+    one backbone). The default is narrower, so that two backbones plus neck train on a
+    2-core CPU in under 30 minutes and run 640x360 within the 120 ms budget.
+    """
+
+    aux_modalities: tuple[AuxModality, ...] = Field(
+        ("thermal", "radar"),
+        description="Non-RGB channels fed to backbone 2, in order (depth optional as a sixth channel).",
+    )
+    rgb_widths: tuple[int, int, int, int, int] = Field(
+        (16, 24, 48, 96, 128), description="Backbone 1 (RGB) channel widths at strides 2, 4, 8, 16, 32."
+    )
+    aux_widths: tuple[int, int, int, int, int] = Field(
+        (8, 16, 32, 64, 96), description="Backbone 2 (thermal, radar, depth) widths at strides 2, 4, 8, 16, 32."
+    )
+    neck_widths: tuple[int, int, int] = Field(
+        (48, 96, 128), description="Fused feature widths of the FPN/PAN neck at P3, P4, P5."
+    )
+    depths: tuple[int, int, int, int] = Field(
+        (1, 1, 1, 1), description="C2f bottleneck repeats at strides 4, 8, 16, 32 (YOLOv8n: 1, 2, 2, 1)."
+    )
+    reg_max: int = Field(16, ge=1, le=32, description="DFL bins per box side (YOLOv8: 16).")
+    classes: tuple[str, ...] = Field(("person",), min_length=1, description="Class names, index order.")
+
+    @property
+    def channels(self) -> tuple[str, ...]:
+        """Names of the input channels in tensor order."""
+        return ("r", "g", "b", *self.aux_modalities)
 
 
 class PerceptionConfig(StrictModel):
@@ -15,6 +56,40 @@ class PerceptionConfig(StrictModel):
     )
     device: str = Field("cpu", description="Torch device: cpu, cuda, cuda:0.")
     score_threshold: float = Field(0.25, ge=0, le=1, description="Minimum confidence kept after NMS.")
+    iou_threshold: float = Field(0.5, gt=0, le=1, description="NMS IoU above which the weaker box is suppressed.")
+    max_detections: int = Field(50, ge=1, le=1000, description="Detections kept per frame after NMS.")
     attribution_every_s: float = Field(
         1.0, gt=0, description="Seconds between contribution attributions (default: once per decision)."
     )
+    attribution_targets: int = Field(
+        5, ge=1, le=50, description="Top detections whose confidences are attributed to the input channels."
+    )
+    attribution_decay_s: float = Field(
+        3.0, gt=0, description="Time constant (s) of the decay toward uniform scores while nothing is detected."
+    )
+    torch_threads: int = Field(
+        1,
+        ge=1,
+        le=64,
+        description="Torch intra-op threads for inference; 1 leaves the second core to the event loop and drivers.",
+    )
+    thermal_range_k: tuple[float, float] = Field(
+        (273.0, 313.0), description="Kelvin mapped to 0..1 for thermal frames in kelvin (meta units 'K')."
+    )
+    thermal_counts_per_k: float = Field(
+        100.0,
+        gt=0,
+        description="Raw uint16 thermal counts per kelvin (counts = K x this; the simulator's centikelvin).",
+    )
+    plane_depth_m: float = Field(
+        5.0, gt=0, description="Depth (m) of the plane the thermal homography is exact for (parallax elsewhere)"
+    )
+    radar_max_range_m: float = Field(15.0, gt=0, description="Radar points farther than this are not projected.")
+    depth_max_m: float = Field(10.0, gt=0, description="Depth mapped to 0..1 over 0..this many metres.")
+    model: ModelSpec = Field(ModelSpec(), description="Network shape; must match the checkpoint.")
+
+    @model_validator(mode="after")
+    def _ordered_thermal_range(self) -> PerceptionConfig:
+        if self.thermal_range_k[0] >= self.thermal_range_k[1]:
+            raise ValueError("thermal_range_k must be (low, high) with low < high")
+        return self

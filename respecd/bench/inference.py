@@ -1,0 +1,79 @@
+"""Inference: fusion detector forward and forward+attribution time per RGB resolution.
+
+Inputs are real simulated frames (a lit scene with people, so NMS and attribution have
+targets), aligned once; the timed part is what the perception worker does per bundle:
+network + NMS (``forward_ms``), or network with gradients + NMS + one backward pass +
+per-box sums (``attribution_ms``). Medians over ``--repeats`` runs after a warm-up.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from typing import Any
+
+RESOLUTIONS = ((1280, 720), (960, 540), (640, 360))
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--weights", default="builtin:sim-rover", help="checkpoint (default the shipped one)")
+    parser.add_argument("--repeats", type=int, default=10, help="timed runs per resolution (default 10)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (default: the profile default)")
+    parser.add_argument("--seed", type=int, default=1, help="world seed of the scene used as input")
+
+
+def _median_ms(fn, repeats: int) -> float:
+    fn()  # warm-up: allocator and oneDNN kernel selection for this shape
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times) * 1000
+
+
+def _frames(seed: int, size: tuple[int, int]):
+    import numpy as np
+
+    from respecd.messages import Frame
+    from respecd.sim.render import render_radar, render_rgb, render_thermal
+    from respecd.sim.world import SimulationConfig, World
+
+    world = World(SimulationConfig(scenarios=["good-light-static"]), seed)
+    state = world.state_at(10.0)
+    rng = np.random.default_rng(seed)
+    data = {"rgb": render_rgb(state, size, 1 / 30, rng), "thermal": render_thermal(state, (160, 120), rng),
+            "radar": render_radar(state, "range", 10.0, rng)}
+    return {k: Frame(k, state.t, 0, v) for k, v in data.items()}  # type: ignore[arg-type]
+
+
+def run(args: argparse.Namespace) -> dict[str, Any]:
+    import torch
+
+    from respecd.perception.config import PerceptionConfig
+    from respecd.perception.detector import FusionDetector
+    from respecd.perception.model import count_parameters
+
+    config = PerceptionConfig(weights=args.weights)
+    threads = args.threads or config.torch_threads
+    torch.set_num_threads(threads)
+    detector = FusionDetector.load(config)
+    rows = []
+    for w, h in RESOLUTIONS:
+        frames = _frames(args.seed, (w, h))
+        align_ms = _median_ms(lambda f=frames: detector.prepare(f), args.repeats)
+        aligned = detector.prepare(frames)
+        forward_ms = _median_ms(lambda a=aligned: detector.run(a, False), args.repeats)
+        attribution_ms = _median_ms(lambda a=aligned: detector.run(a, True), args.repeats)
+        detections, _ = detector.run(aligned, False)
+        rows.append({
+            "rgb": f"{w}x{h}",
+            "forward_ms": round(forward_ms, 1),
+            "attribution_ms": round(attribution_ms, 1),
+            "ratio": round(attribution_ms / forward_ms, 2),
+            "align_ms": round(align_ms, 1),
+            "detections": len(detections),
+        })
+    return {"resolutions": rows, "model_params": count_parameters(detector.model), "torch_threads": threads,
+            "repeats": args.repeats, "weights": args.weights}

@@ -1,0 +1,92 @@
+"""Detection metrics: COCO-style average precision at IoU 0.5 and averaged over 0.5:0.95.
+
+Per IoU threshold, detections of all images are sorted by confidence and greedily matched
+to the unmatched ground-truth box of highest IoU; AP is the area under the interpolated
+precision/recall curve sampled at 101 recall points (the COCO definition). Ground truth
+marked ``ignore`` (a person hidden behind a solid occluder) neither counts as a miss nor
+turns a detection on it into a false positive.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+IOU_THRESHOLDS = tuple(np.round(np.arange(0.5, 0.96, 0.05), 2))
+
+
+@dataclass
+class ImageResult:
+    """One image's predictions and ground truth (single class), pixel x1y1x2y2."""
+
+    pred_boxes: np.ndarray  # (P, 4)
+    pred_scores: np.ndarray  # (P,)
+    gt_boxes: np.ndarray  # (G, 4)
+    gt_ignore: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))  # (G,)
+
+    def __post_init__(self) -> None:
+        if len(self.gt_ignore) != len(self.gt_boxes):
+            self.gt_ignore = np.zeros(len(self.gt_boxes), dtype=bool)
+
+
+def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(N, 4) x (M, 4) -> (N, M) IoU."""
+    if len(a) == 0 or len(b) == 0:
+        return np.zeros((len(a), len(b)))
+    lt = np.maximum(a[:, None, :2], b[None, :, :2])
+    rb = np.minimum(a[:, None, 2:], b[None, :, 2:])
+    inter = np.clip(rb - lt, 0, None).prod(-1)
+    area_a = np.clip(a[:, 2:] - a[:, :2], 0, None).prod(-1)
+    area_b = np.clip(b[:, 2:] - b[:, :2], 0, None).prod(-1)
+    return inter / (area_a[:, None] + area_b[None, :] - inter + 1e-9)
+
+
+def _match(image: ImageResult, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Scores, true-positive flags and keep flags (False = matched an ignored box) for one image."""
+    order = np.argsort(-image.pred_scores, kind="stable")
+    scores = image.pred_scores[order]
+    ious = iou_matrix(image.pred_boxes[order], image.gt_boxes)
+    taken = np.zeros(len(image.gt_boxes), dtype=bool)
+    tp = np.zeros(len(order), dtype=bool)
+    keep = np.ones(len(order), dtype=bool)
+    for i in range(len(order)):
+        if ious.shape[1] == 0:
+            break
+        # real boxes first, then ignored ones (a hit on an ignored box is not scored)
+        cand = np.where(~taken & ~image.gt_ignore & (ious[i] >= threshold))[0]
+        if len(cand):
+            j = cand[np.argmax(ious[i, cand])]
+            taken[j], tp[i] = True, True
+            continue
+        if np.any(image.gt_ignore & (ious[i] >= threshold)):
+            keep[i] = False
+    return scores, tp, keep
+
+
+def average_precision(images: list[ImageResult], threshold: float) -> float:
+    """COCO 101-point interpolated AP at one IoU threshold; NaN when there is no ground truth."""
+    n_gt = int(sum((~im.gt_ignore).sum() for im in images))
+    if n_gt == 0:
+        return float("nan")
+    parts = [_match(im, threshold) for im in images]
+    scores = np.concatenate([p[0][p[2]] for p in parts]) if parts else np.zeros(0)
+    tp = np.concatenate([p[1][p[2]] for p in parts]) if parts else np.zeros(0, dtype=bool)
+    if len(scores) == 0:
+        return 0.0
+    order = np.argsort(-scores, kind="stable")
+    tp = tp[order]
+    ctp, cfp = np.cumsum(tp), np.cumsum(~tp)
+    recall = ctp / n_gt
+    precision = ctp / np.maximum(ctp + cfp, 1)
+    precision = np.maximum.accumulate(precision[::-1])[::-1]  # monotone envelope
+    points = np.linspace(0, 1, 101)
+    idx = np.searchsorted(recall, points, side="left")
+    sampled = np.where(idx < len(precision), precision[np.minimum(idx, len(precision) - 1)], 0.0)
+    return float(sampled.mean())
+
+
+def mean_ap(images: list[ImageResult]) -> dict[str, float]:
+    """{"map50": AP@0.5, "map50_95": mean AP over IoU 0.5..0.95}."""
+    aps = [average_precision(images, t) for t in IOU_THRESHOLDS]
+    return {"map50": aps[0], "map50_95": float(np.mean(aps))}

@@ -1,0 +1,206 @@
+"""The two-backbone YOLOv8-style fusion detector, in plain PyTorch.
+
+Backbone 1 sees R, G, B; backbone 2 sees the aligned non-RGB channels (thermal, radar,
+optionally depth) plus one constant presence plane per modality, so that "sensor off"
+and "cold, empty scene" are different inputs. Their P3-P5 features are concatenated
+(mid-level fusion) and go through a YOLOv8 FPN/PAN neck into an anchor-free decoupled
+head with DFL box regression. Everything is convolutional: any input whose sides are
+multiples of 32 works, and the cost scales with the pixel count.
+
+Layer recipe follows ultralytics' ``yolov8.yaml`` (Conv-BN-SiLU, C2f, SPPF); the code is
+our own.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+from respecd.perception.config import ModelSpec
+
+STRIDES = (8, 16, 32)  # P3, P4, P5
+
+
+class Conv(nn.Module):
+    """Conv2d (no bias) -> BatchNorm -> SiLU; ``k`` odd, 'same' padding before striding."""
+
+    def __init__(self, c_in: int, c_out: int, k: int = 1, s: int = 1) -> None:
+        super().__init__()
+        self.conv = nn.Conv2d(c_in, c_out, k, s, k // 2, bias=False)
+        self.bn = nn.BatchNorm2d(c_out, eps=1e-3, momentum=0.03)
+        self.act = nn.SiLU(inplace=True)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.act(self.bn(self.conv(x)))
+
+
+class Bottleneck(nn.Module):
+    def __init__(self, c: int, shortcut: bool) -> None:
+        super().__init__()
+        self.cv1 = Conv(c, c, 3)
+        self.cv2 = Conv(c, c, 3)
+        self.add = shortcut
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.cv2(self.cv1(x))
+        return x + y if self.add else y
+
+
+class C2f(nn.Module):
+    """CSP block with two convolutions: split, n bottlenecks, concat every stage's output."""
+
+    def __init__(self, c_in: int, c_out: int, n: int = 1, shortcut: bool = False) -> None:
+        super().__init__()
+        self.c = c_out // 2
+        self.cv1 = Conv(c_in, 2 * self.c, 1)
+        self.cv2 = Conv((2 + n) * self.c, c_out, 1)
+        self.m = nn.ModuleList(Bottleneck(self.c, shortcut) for _ in range(n))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = list(self.cv1(x).chunk(2, dim=1))  # 2 x (B, c, H, W)
+        for block in self.m:
+            y.append(block(y[-1]))
+        return self.cv2(torch.cat(y, dim=1))  # (B, (2+n)c, H, W) -> (B, c_out, H, W)
+
+
+class SPPF(nn.Module):
+    """Spatial pyramid pooling (fast): three chained 5x5 max-pools, concatenated."""
+
+    def __init__(self, c_in: int, c_out: int, k: int = 5) -> None:
+        super().__init__()
+        c_hidden = c_in // 2
+        self.cv1 = Conv(c_in, c_hidden, 1)
+        self.cv2 = Conv(c_hidden * 4, c_out, 1)
+        self.pool = nn.MaxPool2d(k, 1, k // 2)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = [self.cv1(x)]
+        for _ in range(3):
+            y.append(self.pool(y[-1]))
+        return self.cv2(torch.cat(y, dim=1))  # (B, 4*c_hidden, H, W) -> (B, c_out, H, W)
+
+
+class Backbone(nn.Module):
+    """CSPDarknet as in YOLOv8: returns features at strides 8, 16, 32."""
+
+    def __init__(self, c_in: int, w: tuple[int, ...], d: tuple[int, ...]) -> None:
+        super().__init__()
+        self.stem = nn.Sequential(Conv(c_in, w[0], 3, 2), Conv(w[0], w[1], 3, 2), C2f(w[1], w[1], d[0], True))
+        self.p3 = nn.Sequential(Conv(w[1], w[2], 3, 2), C2f(w[2], w[2], d[1], True))
+        self.p4 = nn.Sequential(Conv(w[2], w[3], 3, 2), C2f(w[3], w[3], d[2], True))
+        self.p5 = nn.Sequential(Conv(w[3], w[4], 3, 2), C2f(w[4], w[4], d[3], True), SPPF(w[4], w[4]))
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        p3 = self.p3(self.stem(x))  # (B, w2, H/8, W/8)
+        p4 = self.p4(p3)  # (B, w3, H/16, W/16)
+        return p3, p4, self.p5(p4)  # P5: (B, w4, H/32, W/32)
+
+
+class Neck(nn.Module):
+    """YOLOv8 FPN (top-down) + PAN (bottom-up) over the fused P3, P4, P5."""
+
+    def __init__(self, c: tuple[int, int, int], w: tuple[int, int, int], n: int) -> None:
+        super().__init__()
+        self.up = nn.Upsample(scale_factor=2, mode="nearest")
+        self.td4 = C2f(c[2] + c[1], w[1], n)
+        self.td3 = C2f(w[1] + c[0], w[0], n)
+        self.down3 = Conv(w[0], w[0], 3, 2)
+        self.bu4 = C2f(w[0] + w[1], w[1], n)
+        self.down4 = Conv(w[1], w[1], 3, 2)
+        self.bu5 = C2f(w[1] + c[2], w[2], n)
+
+    def forward(self, f3: torch.Tensor, f4: torch.Tensor, f5: torch.Tensor) -> list[torch.Tensor]:
+        t4 = self.td4(torch.cat([self.up(f5), f4], 1))  # (B, w1, H/16, W/16)
+        o3 = self.td3(torch.cat([self.up(t4), f3], 1))  # (B, w0, H/8, W/8)
+        o4 = self.bu4(torch.cat([self.down3(o3), t4], 1))  # (B, w1, H/16, W/16)
+        o5 = self.bu5(torch.cat([self.down4(o4), f5], 1))  # (B, w2, H/32, W/32)
+        return [o3, o4, o5]
+
+
+class Head(nn.Module):
+    """Anchor-free decoupled head: a box branch (4 x reg_max DFL logits) and a class branch."""
+
+    def __init__(self, c: tuple[int, int, int], nc: int, reg_max: int) -> None:
+        super().__init__()
+        self.nc, self.reg_max = nc, reg_max
+        cb = max(16, c[0] // 4, reg_max * 4)
+        cc = max(c[0], min(nc, 100))
+        self.box = nn.ModuleList(
+            nn.Sequential(Conv(ci, cb, 3), Conv(cb, cb, 3), nn.Conv2d(cb, 4 * reg_max, 1)) for ci in c
+        )
+        self.cls = nn.ModuleList(nn.Sequential(Conv(ci, cc, 3), Conv(cc, cc, 3), nn.Conv2d(cc, nc, 1)) for ci in c)
+        for box, cls, s in zip(self.box, self.cls, STRIDES, strict=True):
+            nn.init.constant_(box[-1].bias, 1.0)
+            # prior: ~5 objects per 640x640 image (ultralytics' bias init)
+            nn.init.constant_(cls[-1].bias, math.log(5 / nc / (640 / s) ** 2))
+
+    def forward(self, feats: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
+        boxes, logits = [], []
+        for f, box, cls in zip(feats, self.box, self.cls, strict=True):
+            boxes.append(box(f).flatten(2))  # (B, 4*reg_max, h*w)
+            logits.append(cls(f).flatten(2))  # (B, nc, h*w)
+        # (B, N, 4*reg_max) and (B, N, nc), N = sum of h*w over P3..P5
+        return torch.cat(boxes, 2).transpose(1, 2), torch.cat(logits, 2).transpose(1, 2)
+
+
+class FusionNet(nn.Module):
+    """RGB backbone + aux backbone -> concat at P3-P5 -> neck -> head."""
+
+    def __init__(self, spec: ModelSpec) -> None:
+        super().__init__()
+        self.spec = spec
+        n_aux = len(spec.aux_modalities)
+        self.rgb = Backbone(3, spec.rgb_widths, spec.depths)
+        self.aux = Backbone(2 * n_aux, spec.aux_widths, spec.depths)  # data planes + presence planes
+        fused = tuple(a + b for a, b in zip(spec.rgb_widths[2:], spec.aux_widths[2:], strict=True))
+        self.neck = Neck(fused, spec.neck_widths, spec.depths[0])  # type: ignore[arg-type]
+        self.head = Head(spec.neck_widths, len(spec.classes), spec.reg_max)
+
+    def forward(self, x: torch.Tensor, presence: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """``x``: (B, 3 + A, H, W) in 0..1, H and W multiples of 32; ``presence``: (B, A) 0/1.
+
+        Returns DFL box logits (B, N, 4 * reg_max) and class logits (B, N, nc).
+        """
+        b, _, h, w = x.shape
+        if presence is None:
+            presence = x.new_ones(b, x.shape[1] - 3)
+        planes = presence.to(x.dtype)[:, :, None, None].expand(b, presence.shape[1], h, w)  # (B, A, H, W)
+        aux_in = torch.cat([x[:, 3:], planes], 1)  # (B, 2A, H, W)
+        r3, r4, r5 = self.rgb(x[:, :3])
+        a3, a4, a5 = self.aux(aux_in)
+        feats = self.neck(torch.cat([r3, a3], 1), torch.cat([r4, a4], 1), torch.cat([r5, a5], 1))
+        return self.head(feats)
+
+
+def anchor_grid(height: int, width: int, device: torch.device | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Anchor centres (N, 2) in pixels and their strides (N, 1), in the head's output order."""
+    points, strides = [], []
+    for s in STRIDES:
+        ys, xs = torch.meshgrid(
+            torch.arange(height // s, device=device, dtype=torch.float32),
+            torch.arange(width // s, device=device, dtype=torch.float32),
+            indexing="ij",
+        )
+        points.append((torch.stack([xs, ys], -1).reshape(-1, 2) + 0.5) * s)  # (h*w, 2) cell centres
+        strides.append(torch.full((xs.numel(), 1), float(s), device=device))
+    return torch.cat(points), torch.cat(strides)
+
+
+def dfl_expectation(box_logits: torch.Tensor, reg_max: int) -> torch.Tensor:
+    """(B, N, 4*reg_max) logits -> (B, N, 4) expected distances left, top, right, bottom in stride units."""
+    b, n, _ = box_logits.shape
+    prob = box_logits.view(b, n, 4, reg_max).softmax(-1)  # (B, N, 4, reg_max)
+    bins = torch.arange(reg_max, device=box_logits.device, dtype=prob.dtype)
+    return prob @ bins  # (B, N, 4)
+
+
+def decode_boxes(box_logits: torch.Tensor, points: torch.Tensor, strides: torch.Tensor, reg_max: int) -> torch.Tensor:
+    """Box logits -> (B, N, 4) boxes x1, y1, x2, y2 in input pixels."""
+    ltrb = dfl_expectation(box_logits, reg_max) * strides  # (B, N, 4) pixels
+    return torch.cat([points - ltrb[..., :2], points + ltrb[..., 2:]], -1)
+
+
+def count_parameters(model: nn.Module) -> int:
+    return sum(p.numel() for p in model.parameters())

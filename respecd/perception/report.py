@@ -1,0 +1,76 @@
+"""Evaluation output: a Markdown table (mAP per condition x ablation, mean contributions)
+and a PNG bar chart of the contributions per condition, plus the raw JSON."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+from respecd.perception.evaluate import condition_order
+
+
+def _fmt(v: float) -> str:
+    return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.3f}"
+
+
+def markdown(report: dict, title: str) -> str:
+    """Two tables: mAP@0.5 / mAP@0.5:0.95, and mean contribution scores per condition."""
+    conds = condition_order(report)
+    names = list(report["map"][conds[0]])
+    lines = [f"# {title}", "", "mAP@0.5 / mAP@0.5:0.95 per condition, with every modality and with one removed", ""]
+    lines.append("| condition | frames | " + " | ".join(names) + " |")
+    lines.append("|---|---|" + "---|" * len(names))
+    for cond in conds:
+        cells = [f"{_fmt(report['map'][cond][n]['map50'])} / {_fmt(report['map'][cond][n]['map50_95'])}" for n in names]
+        lines.append(f"| {cond} | {report['frames'][cond]} | " + " | ".join(cells) + " |")
+    keys = _contribution_keys(report)
+    lines += ["", "Mean contribution scores (all modalities on; frames with at least one detection)", ""]
+    lines.append("| condition | attributed | " + " | ".join(keys) + " |")
+    lines.append("|---|---|" + "---|" * len(keys))
+    for cond in conds:
+        row = report["contributions"].get(cond, {})
+        lines.append(f"| {cond} | {report['attributed'].get(cond, 0)} | "
+                     + " | ".join(_fmt(row.get(k)) if row else "n/a" for k in keys) + " |")
+    return "\n".join(lines) + "\n"
+
+
+def _contribution_keys(report: dict) -> list[str]:
+    for row in report["contributions"].values():
+        if row:
+            ordered = ["r", "g", "b", "rgb"]
+            return ordered + [k for k in row if k not in ordered]
+    return ["r", "g", "b", "rgb"]
+
+
+def bar_chart(report: dict, path: Path, title: str) -> None:
+    """Grouped bars: per condition, the mean contribution of each modality (RGB grouped)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    conds = [c for c in condition_order(report) if report["contributions"].get(c)]
+    keys = [k for k in _contribution_keys(report) if k not in ("r", "g", "b")]
+    fig, ax = plt.subplots(figsize=(7, 3.6), dpi=120)
+    width = 0.8 / max(1, len(keys))
+    for i, key in enumerate(keys):
+        xs = [j + (i - (len(keys) - 1) / 2) * width for j in range(len(conds))]
+        ax.bar(xs, [report["contributions"][c].get(key, 0.0) for c in conds], width, label=key)
+    ax.set_xticks(range(len(conds)), conds)
+    ax.set_ylim(0, 1)
+    ax.set_ylabel("mean contribution")
+    ax.set_title(title)
+    ax.legend(ncols=len(keys), loc="upper right", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+
+
+def write(report: dict, out_dir: Path, title: str) -> dict[str, str]:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = {"markdown": out_dir / "eval.md", "png": out_dir / "contributions.png", "json": out_dir / "eval.json"}
+    paths["markdown"].write_text(markdown(report, title), encoding="utf-8")
+    bar_chart(report, paths["png"], title)
+    paths["json"].write_text(json.dumps(report, indent=2, default=float) + "\n", encoding="utf-8")
+    return {k: str(v) for k, v in paths.items()}

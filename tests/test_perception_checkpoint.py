@@ -1,0 +1,89 @@
+"""Checkpoints: round trip, and a clear one-line error for every kind of bad file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+from respecd.errors import ConfigError
+from respecd.perception import checkpoint
+from respecd.perception.config import ModelSpec, PerceptionConfig
+from respecd.perception.detector import FusionDetector
+from respecd.perception.model import FusionNet
+
+TINY = ModelSpec(rgb_widths=(8, 8, 16, 16, 16), aux_widths=(8, 8, 8, 8, 8), neck_widths=(16, 16, 16))
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """One intra-op thread: on a shared 2-core runner, two spin-waiting threads run slower."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def test_round_trip_gives_identical_outputs(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    model = FusionNet(TINY).eval()
+    path = tmp_path / "tiny.pt"
+    checkpoint.save(path, model, {"data": "unit-test"})
+    card = checkpoint.write_card(path, model, {"name": "tiny"})
+    loaded, payload = checkpoint.load(str(path), expected=TINY)
+    x = torch.rand(1, 5, 64, 96)
+    with torch.inference_mode():
+        for a, b in zip(model(x), loaded(x), strict=True):
+            assert torch.equal(a, b)
+    assert payload["data"] == "unit-test"
+    assert '"channels": [\n    "r"' in card.read_text()
+    detector = FusionDetector.load(PerceptionConfig(weights=str(path), model=TINY))
+    assert detector.channels == ("r", "g", "b", "thermal", "radar")
+
+
+def test_garbage_file_is_a_clear_config_error(tmp_path: Path) -> None:
+    path = tmp_path / "broken.pt"
+    path.write_bytes(b"this is not a checkpoint")
+    with pytest.raises(ConfigError, match=r"broken\.pt: not a loadable torch checkpoint"):
+        checkpoint.load(str(path))
+
+
+def test_foreign_torch_file_is_rejected(tmp_path: Path) -> None:
+    path = tmp_path / "foreign.pt"
+    torch.save({"model": {"w": torch.zeros(2)}}, path)
+    with pytest.raises(ConfigError, match=r"foreign\.pt: not a respecd fusion checkpoint"):
+        checkpoint.load(str(path))
+
+
+def test_pickled_code_is_refused(tmp_path: Path) -> None:
+    path = tmp_path / "code.pt"
+    torch.save({"format": checkpoint.FORMAT, "payload": Path("/")}, path)  # arbitrary object: needs full pickle
+    with pytest.raises(ConfigError, match="not a loadable torch checkpoint"):
+        checkpoint.load(str(path))
+
+
+def test_mismatched_spec_names_the_field(tmp_path: Path) -> None:
+    path = tmp_path / "tiny.pt"
+    checkpoint.save(path, FusionNet(TINY))
+    wider = TINY.model_copy(update={"neck_widths": (32, 32, 32)})
+    with pytest.raises(ConfigError) as info:
+        FusionDetector.load(PerceptionConfig(weights=str(path), model=wider))
+    assert "perception.model.neck_widths" in str(info.value)
+    assert "(32, 32, 32)" in str(info.value) and "(16, 16, 16)" in str(info.value)
+
+
+def test_weights_that_do_not_fit_their_spec(tmp_path: Path) -> None:
+    path = tmp_path / "tampered.pt"
+    payload = {"format": checkpoint.FORMAT, "spec": TINY.model_dump(mode="json"),
+               "state_dict": FusionNet(TINY.model_copy(update={"neck_widths": (24, 24, 24)})).state_dict()}
+    torch.save(payload, path)
+    with pytest.raises(ConfigError, match="weights do not fit the model spec"):
+        checkpoint.load(str(path))
+
+
+def test_missing_files() -> None:
+    with pytest.raises(ConfigError, match="no such checkpoint file"):
+        checkpoint.load("/nonexistent/model.pt")
+    with pytest.raises(ConfigError, match="no built-in checkpoint named 'nope'"):
+        checkpoint.load("builtin:nope")

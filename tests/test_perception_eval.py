@@ -1,0 +1,76 @@
+"""mAP computation, the eval command on the real LLVIP pairs, the report files, the bench."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from respecd.cli import main as cli_main
+from respecd.perception import checkpoint
+from respecd.perception.config import ModelSpec
+from respecd.perception.metrics import ImageResult, average_precision, mean_ap
+from respecd.perception.model import FusionNet
+
+TINY = ModelSpec(rgb_widths=(8, 8, 16, 16, 16), aux_widths=(8, 8, 8, 8, 8), neck_widths=(16, 16, 16))
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """One intra-op thread: on a shared 2-core runner, two spin-waiting threads run slower."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+GT = np.array([[10, 10, 50, 90], [100, 20, 140, 100]], np.float32)
+
+
+def test_perfect_detections_score_one() -> None:
+    images = [ImageResult(GT.copy(), np.array([0.9, 0.8]), GT)]
+    assert mean_ap(images) == {"map50": pytest.approx(1.0), "map50_95": pytest.approx(1.0)}
+
+
+def test_misses_false_positives_and_loose_boxes_cost_precision() -> None:
+    loose = GT + np.array([4, 4, 4, 4], np.float32)  # IoU ~0.7: counts at 0.5, not at 0.9
+    images = [ImageResult(loose, np.array([0.9, 0.8]), GT)]
+    scores = mean_ap(images)
+    assert scores["map50"] == pytest.approx(1.0) and scores["map50_95"] < 0.6
+    half = [ImageResult(np.vstack([GT[:1], [[200, 200, 240, 260]]]), np.array([0.5, 0.9]), GT)]
+    # the false positive ranks first, then one of two boxes is found: precision 1/2 at recall 1/2
+    assert average_precision(half, 0.5) == pytest.approx(51 / 101 * 0.5, abs=1e-6)
+    assert average_precision([ImageResult(np.zeros((0, 4)), np.zeros(0), GT)], 0.5) == 0.0
+
+
+def test_ignored_ground_truth_is_neither_hit_nor_miss() -> None:
+    ignore = np.array([False, True])
+    only_first = [ImageResult(GT[:1].copy(), np.array([0.9]), GT, ignore)]
+    assert average_precision(only_first, 0.5) == pytest.approx(1.0)  # the hidden person is not a miss
+    both = [ImageResult(GT.copy(), np.array([0.9, 0.95]), GT, ignore)]
+    assert average_precision(both, 0.5) == pytest.approx(1.0)  # nor is a detection on it a false positive
+
+
+def test_eval_command_on_real_llvip_pairs(shared_data, tmp_path: Path, capsys) -> None:
+    torch.manual_seed(0)
+    weights = tmp_path / "tiny.pt"
+    checkpoint.save(weights, FusionNet(TINY))
+    out = tmp_path / "eval"
+    code = cli_main(["eval", "--data", str(shared_data / "llvip_pairs"), "--weights", str(weights),
+                     "--out", str(out), "--scale", "0.25", "--threads", "1", "--quiet"])
+    assert code == 0
+    report = json.loads((out / "eval.json").read_text())
+    assert report["frames"]["llvip"] == 6  # the six annotated pairs
+    assert set(report["map"]["llvip"]) == {"all", "no-rgb", "no-thermal", "no-radar", "rgb-only"}
+    assert (out / "contributions.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    text = (out / "eval.md").read_text()
+    assert "| llvip | 6 |" in text and "mAP@0.5" in text
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_eval_command_rejects_a_bad_checkpoint(tmp_path: Path, capsys) -> None:
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"\x00" * 10)
+    assert cli_main(["eval", "--weights", str(bad), "--out", str(tmp_path)]) == 2
+    assert "bad.pt: not a loadable torch checkpoint" in capsys.readouterr().err

@@ -1,0 +1,76 @@
+"""The perception stage: bundles in, percepts out, one worker thread, attribution cadence."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+from respecd.clock import ManualClock
+from respecd.messages import Bundle, Frame, Health, SyncStats
+from respecd.perception.config import ModelSpec, PerceptionConfig
+from respecd.perception.detector import FusionDetector
+from respecd.perception.model import FusionNet
+from respecd.perception.stage import PerceptionStage
+from respecd.queues import DropOldestQueue
+
+TINY = ModelSpec(rgb_widths=(8, 8, 16, 16, 16), aux_widths=(8, 8, 8, 8, 8), neck_widths=(16, 16, 16))
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    """One intra-op thread: on a shared 2-core runner, two spin-waiting threads run slower."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+SYNC = SyncStats(rate_hz=10.0, jitter_ms=0.0, stale_ratio=0.0, health=Health.GOOD)
+
+
+class RecordingDetector(FusionDetector):
+    """The real detector, noting which thread ran each call and whether it attributed."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.calls: list[tuple[str, bool]] = []
+
+    def infer(self, frames, attribute):
+        self.calls.append((threading.current_thread().name, attribute))
+        return super().infer(frames, attribute)
+
+
+def _bundle(t: float, seq: int) -> Bundle:
+    rgb = np.random.default_rng(seq).integers(0, 255, (96, 160, 3), dtype=np.uint8)
+    thermal = np.full((30, 40), 30000, np.uint16)
+    frames = {"rgb": Frame("rgb", t, seq, rgb), "thermal": Frame("thermal", t, seq, thermal)}
+    return Bundle(t=t, frames=frames, sync=SYNC, seq=seq)
+
+
+async def test_stage_runs_detector_in_one_worker_thread_at_the_cadence() -> None:
+    torch.manual_seed(0)
+    config = PerceptionConfig(model=TINY, score_threshold=0.0, max_detections=5, attribution_every_s=1.0)
+    detector = RecordingDetector(FusionNet(TINY), config)
+    stage = PerceptionStage(config, profile=None, clock=ManualClock(), detector=detector)
+    bundles: DropOldestQueue[Bundle] = DropOldestQueue(4)
+    percepts = DropOldestQueue(8)
+    task = asyncio.create_task(stage.run(bundles, percepts), name="perception")
+    received = []
+    for seq, t in enumerate((0.0, 0.3, 0.6, 1.05, 1.2)):
+        if seq == 4:
+            stage.request_attribution()  # the controller asks: the next bundle is attributed
+        bundles.put(_bundle(t, seq))
+        received.append(await asyncio.wait_for(percepts.get(), timeout=30))
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+
+    assert [p.bundle.seq for p in received] == [0, 1, 2, 3, 4]
+    assert [p.t for p in received] == [0.0, 0.3, 0.6, 1.05, 1.2]
+    assert [a for _, a in detector.calls] == [True, False, False, True, True]
+    assert {name for name, _ in detector.calls} == {"perception_0"}
+    assert received[0].contributions is not None and received[1].contributions is None
+    assert stage.last is received[-1] and stage.processed == 5
+    assert all(p.latency > 0 for p in received)
+    assert not any(t.name.startswith("perception") for t in threading.enumerate())
