@@ -72,5 +72,15 @@ async def test_stage_runs_detector_in_one_worker_thread_at_the_cadence() -> None
     assert {name for name, _ in detector.calls} == {"perception_0"}
     assert received[0].contributions is not None and received[1].contributions is None
     assert stage.last is received[-1] and stage.processed == 5
+    assert stage.last.contributions is not None
     assert all(p.latency > 0 for p in received)
     assert not any(t.name.startswith("perception") for t in threading.enumerate())
+
+
+def test_stage_with_bad_weights_fails_at_construction(tmp_path) -> None:
+    from respecd.errors import ConfigError
+
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not torch")
+    with pytest.raises(ConfigError, match="bad.pt"):
+        PerceptionStage(PerceptionConfig(weights=str(bad)), profile=None, clock=ManualClock())

@@ -35,7 +35,13 @@ def calibration_from_profile(profile: Any) -> dict[str, Any]:
 
 
 class PerceptionStage:
-    """Runs the fusion detector on each bundle; ``last`` is the newest Percept (status line)."""
+    """Runs the fusion detector on each bundle.
+
+    The checkpoint is loaded here, so a bad or mismatched one fails the start (exit 2)
+    rather than a supervised task. ``last`` is the newest Percept for the status line,
+    with the most recent scene contributions carried over between attributions (the
+    Percepts on the queue keep ``contributions=None`` when not attributed).
+    """
 
     def __init__(self, config: PerceptionConfig, profile: Any, clock: Clock, detector: Any = None) -> None:
         self.config = config
@@ -43,7 +49,8 @@ class PerceptionStage:
         self.clock = clock
         self.last: Percept | None = None
         self.processed = 0
-        self._detector = detector
+        self._detector = detector if detector is not None else self._load()
+        self._contributions: dict[str, float] | None = None
         self._executor: ThreadPoolExecutor | None = None
         self._attribution_requested = False
         self._last_attribution_t: float | None = None
@@ -57,15 +64,15 @@ class PerceptionStage:
         loop = asyncio.get_running_loop()
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="perception")
         try:
-            if self._detector is None:
-                self._detector = await loop.run_in_executor(self._executor, self._load)
             while True:
                 bundle = await bundles.get()
                 attribute = self._attribution_due(bundle.t)
                 frames = dict(bundle.frames)
                 percept = await loop.run_in_executor(self._executor, self._detector.infer, frames, attribute)
                 percept = dataclasses.replace(percept, t=bundle.t, bundle=bundle)
-                self.last = percept
+                self._contributions = percept.contributions or self._contributions
+                shown = percept if percept.contributions is not None else None
+                self.last = shown or dataclasses.replace(percept, contributions=self._contributions)
                 self.processed += 1
                 percepts.put(percept)
         finally:
@@ -83,7 +90,7 @@ class PerceptionStage:
             await asyncio.sleep(0.01)
 
     def _load(self) -> Any:
-        """Runs in the worker thread: set torch's thread count there and load the checkpoint."""
+        """Set torch's (process-wide) intra-op thread count and load the checkpoint."""
         import torch
 
         from respecd.perception.detector import FusionDetector
