@@ -116,7 +116,7 @@ class SimDriver(Driver):
 
     async def frames(self) -> AsyncIterator[Frame]:
         world = self.world
-        seq, last_t = 0, None
+        seq, last_t, last_rate = 0, None, 0.0
         waker: asyncio.Future | None = None  # one waiter on _wake, kept across frames until it fires
         sleeper: asyncio.Future | None = None
         try:
@@ -128,7 +128,7 @@ class SimDriver(Driver):
                     await waker  # until apply() or stop()
                     last_t = None  # a re-enabled sensor starts on the next slot from now
                     continue
-                due = self._next_due(last_t, self.applied.rate_hz)
+                due = self._next_due(last_t, last_rate, self.applied.rate_hz)
                 sleeper = asyncio.ensure_future(self.clock.sleep_until(due))
                 await asyncio.wait((sleeper, waker), return_when=asyncio.FIRST_COMPLETED)
                 if not sleeper.done() or self._stopped.is_set():
@@ -137,23 +137,27 @@ class SimDriver(Driver):
                 if frame is None or self._stopped.is_set():
                     return  # stopped while the frame rendered
                 yield frame  # the supervisor counts it in health
-                seq, last_t = seq + 1, due
+                seq, last_t, last_rate = seq + 1, due, self.applied.rate_hz
         finally:
             for future in (waker, sleeper):
                 if future is not None and not future.done():
                     future.cancel()
 
-    def _next_due(self, last_t: float | None, rate: float) -> float:
+    def _next_due(self, last_t: float | None, last_rate: float, rate: float) -> float:
         """The next slot k / rate of the world-time grid after the last frame.
 
         Slots are anchored at t = 0, so a sensor's frame times never drift and do not depend
-        on when it started (the newest frame at time t is floor(t * rate) / rate). A consumer
-        that fell a whole period behind skips to the newest slot (the skipped ones count as drops).
+        on when it started (the newest frame at time t is floor(t * rate) / rate). After a
+        rate change, the first slot of the new grid from now. A consumer that fell a whole
+        period behind skips to the newest slot (the skipped ones count as drops).
         """
         now = self.clock.now()
+        from_now = math.ceil(now * rate - 1e-9)
         if last_t is None:
-            return math.ceil(now * rate - 1e-9) / rate
+            return from_now / rate
         k = math.floor(last_t * rate + 1e-9) + 1
+        if rate != last_rate:
+            return max(k, from_now) / rate
         newest = math.floor(now * rate + 1e-9)
         if newest > k:
             self.health.drops += newest - k

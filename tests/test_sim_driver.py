@@ -80,7 +80,21 @@ async def test_apply_takes_effect_on_the_next_frame() -> None:
     assert all(f.data.shape == (240, 320) and f.data.dtype == np.uint16 for f in after)
     assert [f.t for f in before] == pytest.approx([k / 9 for k in range(5)])
     assert [f.t for f in after] == pytest.approx([0.5, 1.0, 1.5, 2.0, 2.5])  # the 2 Hz grid from the next slot
+    assert driver.health.drops == 0
     assert after[0].meta["units"] == "cK" and after[0].meta["gt"] is not None
+
+
+async def test_raising_the_rate_mid_period_drops_nothing() -> None:
+    clock = ManualClock()
+    driver = _driver("imu", clock, rate_hz=1)
+    await driver.start()
+    reader = Reader(driver)
+    await reader.run_until(clock, 0.5)
+    await driver.apply(SensorConfig("imu", rate_hz=20))
+    await reader.run_until(clock, 1.02)
+    await reader.close()
+    assert [f.t for f in reader.frames] == pytest.approx([0.0] + [k / 20 for k in range(10, 21)])
+    assert driver.health.drops == 0
 
 
 async def test_requests_outside_the_capabilities_are_clamped_and_reported() -> None:
