@@ -31,7 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
 def build_parser() -> argparse.ArgumentParser:
     from respecd.cmd_run import add_arguments as add_run_arguments
 
-    parser = argparse.ArgumentParser(prog="respecd", description="Adaptive multispectral sensing daemon (ReSPEC).")
+    parser = argparse.ArgumentParser(prog="respecd", description="Adaptive multispectral sensing daemon (ReSPEC).", allow_abbrev=False)  # noqa: E501 (`bench scenarios --log` is not an abbreviation of --log-level)
     add_run_arguments(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module_name, help_text) in COMMANDS.items():

@@ -56,8 +56,9 @@ def main(args: argparse.Namespace) -> int:
     evaluator = make_evaluator(detector, profile, not args.no_cache, args.cache_dir)
     probe = controller_for(profile, "learn")
     rollout = Rollout(profile, evaluator, {}, args.samples_per_s)
-    rollout.latency = lat.measure(detector, rollout.world(Piece("good-light-static", 0, 10.0)),
-                                  rgb_resolutions(probe), args.latency_repeats)
+    world = rollout.world(Piece("good-light-static", 0, 10.0))
+    rollout.latency = lat.measure(detector, lat.sim_frames(world, evaluator.inputs), rgb_resolutions(probe),
+                                  args.latency_repeats)
     print("latency (ms):", {k: round(v["forward_ms"]) for k, v in lat.to_json(rollout.latency).items()})
     table = probe.table
     if args.resume and table is not None and load_into(out, table, probe.layout()):

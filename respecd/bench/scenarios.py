@@ -49,39 +49,50 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from respecd.config import load_profile
     from respecd.experiment import latency as lat
     from respecd.experiment.compare import run_all
-    from respecd.experiment.rollout import Piece, Rollout, controller_for
-    from respecd.experiment.setup import load_detector, make_evaluator, rgb_resolutions
-    from respecd.experiment.training import EVAL_SEED
+    from respecd.experiment.rollout import Rollout, controller_for
+    from respecd.experiment.setup import load_detector, rgb_resolutions
 
     start = time.monotonic()
     profile = load_profile(args.profile)
     table = _table_path(args)
-    if args.log is not None:
-        from respecd.experiment.logbench import run_log
-
-        return run_log(args, profile, table)
     detector = load_detector(profile, args.weights, args.random_detector)
-    evaluator = make_evaluator(detector, profile, not args.no_cache, args.cache_dir)
-    duration = args.duration or (QUICK_DURATION_S if args.quick else profile.simulation.scenario_duration_s)
-    seed = EVAL_SEED if args.seed is None else args.seed
-    pieces = [Piece(name, seed + i, duration) for i, name in enumerate(profile.simulation.scenarios)]
+    if args.log is not None:
+        from respecd.experiment.logbench import prepare_log
+
+        evaluator, pieces, frames_for, extra = prepare_log(args, detector)
+    else:
+        evaluator, pieces, frames_for, extra = _prepare_sim(args, profile, detector)
     rollout = Rollout(profile, evaluator, {}, args.samples_per_s)
     repeats = args.latency_repeats or (2 if args.quick else 5)
-    resolutions = rgb_resolutions(controller_for(profile, "static"))
-    rollout.latency = lat.measure(detector, rollout.world(pieces[0]), resolutions, repeats)
-    bar = _bar(args, 3 * len(pieces) * max(1, int(round(duration / rollout.period))))
+    rollout.latency = lat.measure(detector, frames_for, rgb_resolutions(controller_for(profile, "static")), repeats)
+    bar = _bar(args, 3 * sum(max(1, int(round(p.duration_s / rollout.period))) for p in pieces))
     try:
         result = run_all(profile, rollout, pieces, table, (lambda p, r: bar.update()) if bar else None)
     finally:
         if bar:
             bar.close()
         evaluator.cache.close()
-    result.update(latency_ms=lat.to_json(rollout.latency), duration_s_per_scenario=duration, world_seed=seed,
-                  table=str(table), detector_fingerprint=evaluator.fingerprint,
+    result.update(extra)
+    result.update(latency_ms=lat.to_json(rollout.latency), table=str(table), detector_fingerprint=evaluator.fingerprint,
                   cache={"hits": evaluator.cache.hits, "misses": evaluator.cache.misses},
                   wall_s=round(time.monotonic() - start, 1))
     _write_outputs(args, result)
     return result
+
+
+def _prepare_sim(args: argparse.Namespace, profile: Any, detector: Any) -> tuple:
+    """The simulator as the source: held-out world seeds, one piece per scenario."""
+    from respecd.experiment import latency as lat
+    from respecd.experiment.rollout import Piece
+    from respecd.experiment.setup import make_evaluator
+    from respecd.experiment.training import EVAL_SEED
+
+    evaluator = make_evaluator(detector, profile, not args.no_cache, args.cache_dir)
+    duration = args.duration or (QUICK_DURATION_S if args.quick else profile.simulation.scenario_duration_s)
+    seed = EVAL_SEED if args.seed is None else args.seed
+    pieces = [Piece(name, seed + i, duration) for i, name in enumerate(profile.simulation.scenarios)]
+    frames_for = lat.sim_frames(evaluator.world(pieces[0], profile.simulation), evaluator.inputs)
+    return evaluator, pieces, frames_for, {"duration_s_per_scenario": duration, "world_seed": seed}
 
 
 def _bar(args: argparse.Namespace, total: int) -> Any:

@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import statistics
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Any
 
 from respecd.experiment.frames import frame_id, render
-from respecd.messages import SensorConfig
+from respecd.messages import Frame, SensorConfig
 from respecd.sim.world import World
 
 
@@ -26,27 +26,38 @@ class Latency:
     attribution_s: float  # one inference with attribution (forward with gradients + backward)
 
 
-def measure(detector: Any, world: World, resolutions: Iterable[tuple[int, int]], repeats: int = 3,
-            t: float = 5.0) -> dict[tuple[int, int], Latency]:
-    """Median wall time of ``repeats`` calls per resolution, after one warm-up call each."""
+def measure(detector: Any, frames_for: Callable[[tuple[int, int]], dict[str, Frame]],
+            resolutions: Iterable[tuple[int, int]], repeats: int = 3) -> dict[tuple[int, int], Latency]:
+    """Median wall time of ``repeats`` calls per resolution, after one warm-up call each.
+
+    ``frames_for(resolution)``: a realistic input at that RGB resolution (people in view).
+    """
     table = {}
-    extra = {"thermal": SensorConfig("thermal", rate_hz=10.0, resolution=(160, 120)),
-             "radar": SensorConfig("radar", rate_hz=10.0, mode="range")}
     for res in resolutions:
-        configs = {"rgb": SensorConfig("rgb", rate_hz=30.0, resolution=tuple(res)), **extra}  # type: ignore[arg-type]
-        frames = {m: render(world, frame_id(c, t)) for m, c in configs.items()
-                  if m in ("rgb", *detector.model.spec.aux_modalities)}
+        frames = frames_for(tuple(res))  # type: ignore[arg-type]
         timings = {}
         for attribute in (False, True):
             detector.infer(frames, attribute)  # warm-up: allocator, first-call paths
             runs = []
-            for _ in range(repeats):
+            for _ in range(max(1, repeats)):
                 start = time.perf_counter()
                 detector.infer(frames, attribute)
                 runs.append(time.perf_counter() - start)
             timings[attribute] = statistics.median(runs)
         table[tuple(res)] = Latency(timings[False], max(timings[True], timings[False]))
     return table
+
+
+def sim_frames(world: World, inputs: tuple[str, ...], t: float = 5.0) -> Callable[[tuple[int, int]], dict[str, Frame]]:
+    """Rendered inputs at ``t`` in ``world``: RGB at the asked resolution, thermal and radar as default."""
+    def frames_for(res: tuple[int, int]) -> dict[str, Frame]:
+        configs = {"rgb": SensorConfig("rgb", rate_hz=30.0, resolution=res),
+                   "thermal": SensorConfig("thermal", rate_hz=10.0, resolution=(160, 120)),
+                   "radar": SensorConfig("radar", rate_hz=10.0, mode="range"),
+                   "depth": SensorConfig("depth", rate_hz=15.0, resolution=(640, 480))}
+        return {m: render(world, frame_id(c, t)) for m, c in configs.items() if m in inputs}
+
+    return frames_for
 
 
 def to_json(table: dict[tuple[int, int], Latency]) -> dict[str, dict[str, float]]:

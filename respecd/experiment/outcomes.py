@@ -23,9 +23,13 @@ import numpy as np
 
 from respecd.control.features import FeatureExtractor
 from respecd.experiment.cache import OutcomeCache, outcome_key
-from respecd.experiment.frames import FrameId, frame_id, previous, render
+from respecd.experiment.frames import FrameId, frame_id, imu_frame, previous, render, truth
 from respecd.messages import Bundle, Frame, Health, Percept, SensorConfig, SyncStats
+from respecd.sim.config import SimulationConfig
+from respecd.sim.scenarios import SPECS
 from respecd.sim.world import World
+
+WORLD_SEGMENT_S = 3600.0  # one long segment: the same (scenario, seed) is the same world at any length
 
 _GOOD_SYNC = SyncStats(30.0, 0.0, 0.0, Health.GOOD)
 
@@ -67,6 +71,7 @@ class Evaluator:
         self.inputs = ("rgb", *detector.model.spec.aux_modalities)  # modalities the network reads
         self.inference_s = 0.0  # wall time spent on cache misses (render + detector)
         self._frames: OrderedDict[tuple[str, str], Frame] = OrderedDict()  # a few recent renders
+        self._worlds: dict[tuple[str, int], World] = {}
 
     def frame_ids(self, configs: Mapping[str, SensorConfig], t: float, slot: int | None = None) -> dict[str, FrameId]:
         """The newest frame of every enabled detector input at ``t`` (``slot``: static scene)."""
@@ -102,28 +107,46 @@ class Evaluator:
     def _compute(self, world: World, ids: dict[str, FrameId], configs: Mapping[str, SensorConfig],
                  attribute: bool) -> Outcome:
         frames = {m: self._render(world, fid) for m, fid in ids.items()}
-        if attribute:  # a fresh score per call: the decay between calls is the rollout's job
-            from respecd.perception.attribution import SceneScores
+        prev = self._render(world, previous(ids["rgb"], configs["rgb"].rate_hz)) if "rgb" in ids else None
+        return detect(self.detector, frames, prev, attribute)
 
-            self.detector.scores = SceneScores(self.detector.channels, self.detector.config.attribution_decay_s)
-        percept = self.detector.infer(frames, attribute)
-        boxes = np.array([d.box for d in percept.detections], dtype=np.float32).reshape(-1, 4)
-        scores = np.array([d.confidence for d in percept.detections], dtype=np.float32)
-        fresh = percept.contributions if attribute and percept.detections else None
-        luminance, diff, points = self._features(world, frames, ids, configs)
-        return Outcome(boxes, scores, percept.conf_agg, fresh, luminance, diff, points)
+    # the hooks a rollout uses to reach its scenes (a recorded log provides the same ones)
+    def world(self, piece: Any, simulation: Any) -> World:
+        """The world of one piece (its duration is left out, see ``rollout.WORLD_SEGMENT_S``)."""
+        key = (piece.scenario, piece.seed)
+        world = self._worlds.get(key)
+        if world is None:
+            sim = simulation.model_copy(update={"scenarios": [piece.scenario], "scenario_duration_s": WORLD_SEGMENT_S,
+                                                "loop": False, "seed": None})
+            world = self._worlds[key] = World(SimulationConfig.model_validate(sim.model_dump()), piece.seed)
+        return world
 
-    def _features(self, world: World, frames: dict[str, Frame], ids: dict[str, FrameId],
-                  configs: Mapping[str, SensorConfig]) -> tuple[float | None, float | None, float | None]:
-        """Scene features through the daemon's own extractor (previous RGB frame first)."""
-        extractor = FeatureExtractor()
-        rgb = frames.get("rgb")
-        if rgb is not None:
-            prev = self._render(world, previous(ids["rgb"], configs["rgb"].rate_hz))
-            if prev.seq != rgb.seq:
-                extractor.sample(_percept({"rgb": prev}))
-        sample = extractor.sample(_percept(frames))
-        return sample.luminance, sample.frame_diff, sample.radar_points
+    def static(self, piece: Any) -> bool:
+        """True when nobody moves in the piece's scenario (frames then use noise slots)."""
+        return not SPECS[piece.scenario].moving
+
+    def truth(self, world: World, t: float, resolution: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        return truth(world, t, resolution)
+
+    def imu(self, world: World, t: float) -> np.ndarray:
+        return imu_frame(world, t).data
+
+
+def detect(detector: Any, frames: dict[str, Frame], prev_rgb: Frame | None, attribute: bool) -> Outcome:
+    """Run the detector on ``frames`` and take the scene features the controller's state needs."""
+    if attribute:  # a fresh score per call: the decay between calls is the rollout's job
+        from respecd.perception.attribution import SceneScores
+
+        detector.scores = SceneScores(detector.channels, detector.config.attribution_decay_s)
+    percept = detector.infer(frames, attribute)
+    boxes = np.array([d.box for d in percept.detections], dtype=np.float32).reshape(-1, 4)
+    scores = np.array([d.confidence for d in percept.detections], dtype=np.float32)
+    fresh = percept.contributions if attribute and percept.detections else None
+    extractor = FeatureExtractor()  # the daemon's own: previous RGB frame first, for the difference
+    if prev_rgb is not None and "rgb" in frames and prev_rgb.seq != frames["rgb"].seq:
+        extractor.sample(_percept({"rgb": prev_rgb}))
+    sample = extractor.sample(_percept(frames))
+    return Outcome(boxes, scores, percept.conf_agg, fresh, sample.luminance, sample.frame_diff, sample.radar_points)
 
 
 def _percept(frames: dict[str, Frame]) -> Percept:

@@ -33,25 +33,24 @@ from respecd.control.actions import Position
 from respecd.control.controller import Controller
 from respecd.control.features import Sample, Window
 from respecd.drivers.base import clamp_request
-from respecd.experiment.frames import frame_bytes, imu_frame, truth
+from respecd.experiment.frames import frame_bytes
 from respecd.experiment.latency import Latency
 from respecd.experiment.outcomes import Evaluator
 from respecd.messages import Decision, SensorConfig
 from respecd.perception.attribution import SceneScores
 from respecd.perception.metrics import ImageResult
-from respecd.sim.config import SimulationConfig
-from respecd.sim.scenarios import SPECS
 from respecd.sim.world import World
 
-WORLD_SEGMENT_S = 3600.0
 
 @dataclass(frozen=True)
 class Piece:
-    """One run of one scenario: which, with which world seed, for how long."""
+    """One run of one scenario: which, with which world seed, for how long (and, on a
+    recorded log, from which second of the log)."""
 
     scenario: str
     seed: int
     duration_s: float
+    start_s: float = 0.0
 
 
 @dataclass
@@ -92,18 +91,9 @@ class Rollout:
         self.sensors = [s for s in profile.sensors if s.enabled]
         self.caps = {s.name: CAPABILITIES[s.modality] for s in self.sensors if s.driver == "sim"}
         self.powers = {s.name: s.power for s in self.sensors}
-        self._worlds: dict[Piece, World] = {}
 
     def world(self, piece: Piece) -> World:
-        world = self._worlds.get(piece)
-        if world is None:
-            # the duration is left out of the world (a fixed long segment), so that the same
-            # (scenario, seed) is the same world, and hits the same cache entries, at any length
-            sim = self.profile.simulation.model_copy(
-                update={"scenarios": [piece.scenario], "scenario_duration_s": WORLD_SEGMENT_S, "loop": False,
-                        "seed": None})
-            world = self._worlds[piece] = World(SimulationConfig.model_validate(sim.model_dump()), piece.seed)
-        return world
+        return self.evaluator.world(piece, self.profile.simulation)
 
     def initial(self) -> dict[str, SensorConfig]:
         return {s.name: clamp_request(self.caps[s.name], s.initial_request()) if s.name in self.caps
@@ -117,13 +107,15 @@ class Rollout:
         scores = SceneScores(det.channels, det.config.attribution_decay_s)
         applied = self.initial()
         controller.position = controller.space.nearest(applied)
+        # the sensors start at that position (the daemon gets there at its first decision)
+        applied = self._configure(applied, controller, controller.space.requests(controller.position))
         records: list[WindowRecord] = []
         offset = 0.0
         for piece in pieces:
             world = self.world(piece)
             steps = max(1, int(round(piece.duration_s / self.period)))
             rng = np.random.default_rng([piece.seed, zlib.crc32(piece.scenario.encode()), 5])
-            static = not SPECS[piece.scenario].moving  # the scene never changes: noise slots, see frames.py
+            static = self.evaluator.static(piece)  # the scene never changes: noise slots, see frames.py
             for k in range(steps):
                 by_modality = self._by_modality(applied)
                 offsets = (np.arange(self.samples) + rng.uniform(0.02, 0.98, self.samples)) / self.samples
@@ -138,7 +130,7 @@ class Rollout:
                 position = controller.position
                 decision = controller.step(window.observe(now), applied)
                 record = self._record(piece.scenario, now, position, decision, applied, images, float(np.mean(points)))
-                applied = self._apply(applied, controller, decision)
+                applied = self._configure(applied, controller, decision.configs)
                 records.append(record)
                 if on_window is not None:
                     on_window(record)
@@ -157,11 +149,11 @@ class Rollout:
         contributions = scores.update(offset + t, out.contributions) if attribute else None
         res = configs["rgb"].resolution
         lat = self.latency[res]
-        imu = imu_frame(world, t).data
+        imu = self.evaluator.imu(world, t)
         window.add(Sample(offset + t, out.conf_agg, lat.attribution_s if attribute else lat.forward_s,
                           out.luminance, out.frame_diff, float(np.linalg.norm(imu[3:6])), out.radar_points, 0,
                           contributions))
-        boxes, ignore = truth(world, t, res)
+        boxes, ignore = self.evaluator.truth(world, t, res)
         return ImageResult(out.boxes, out.scores, boxes, ignore), out.radar_points
 
     def detector_rate(self, configs: dict[str, SensorConfig]) -> float:
@@ -180,11 +172,11 @@ class Rollout:
         return WindowRecord(scenario, now, position, decision, 1000.0 * compute_s / self.period, energy, bandwidth,
                             images)
 
-    def _apply(self, applied: dict[str, SensorConfig], controller: Controller,
-               decision: Decision) -> dict[str, SensorConfig]:
-        """What the simulated drivers answer to the decision's requests (they clamp, like apply())."""
+    def _configure(self, applied: dict[str, SensorConfig], controller: Controller,
+                   requests: tuple[SensorConfig, ...]) -> dict[str, SensorConfig]:
+        """What the simulated drivers answer to the requests (they clamp, like their apply())."""
         out = dict(applied)
-        for slot, request in zip(controller.space.slots, decision.configs, strict=True):
+        for slot, request in zip(controller.space.slots, requests, strict=True):
             result = clamp_request(self.caps[slot.name], request) if slot.name in self.caps else request
             if result != applied.get(slot.name):
                 out[slot.name] = result

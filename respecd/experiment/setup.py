@@ -10,17 +10,11 @@ import structlog
 
 from respecd.experiment.cache import OutcomeCache, fingerprint, model_hash
 from respecd.experiment.outcomes import Evaluator
+from respecd.experiment.shipped import shipped_table_path
+
+__all__ = ["load_detector", "make_evaluator", "perception_identity", "rgb_resolutions", "shipped_table_path"]
 
 log = structlog.get_logger(__name__)
-
-SHIPPED_TABLE = "default-qtable.npz"  # inside respecd/control/tables/
-
-
-def shipped_table_path() -> Path:
-    from importlib import resources
-
-    return Path(str(resources.files("respecd.control") / "tables" / SHIPPED_TABLE))
-
 
 def load_detector(profile: Any, weights: str | None = None, random_init: bool = False, seed: int = 0) -> Any:
     """The profile's detector (``weights`` overrides its checkpoint); ``random_init`` for tests."""

@@ -1,0 +1,192 @@
+"""``bench scenarios --log LOG``: the same comparison, replayed counterfactually on a recorded
+session instead of the simulator.
+
+Every policy drives its own controller over the log's time line, exactly as in
+``rollout.py``; what changes is where the frames come from. At an instant ``t`` a sensor
+configured at ``r`` Hz hands the detector the newest *logged* frame at or before its own
+grid time ``floor(t r) / r`` (decimation: a lower rate than recorded is exact; a higher one
+cannot invent frames and gets the recorded ones), resized to the chosen resolution (a
+resolution above the recorded one is an upscale, said in the output). The radar chirp mode
+cannot be changed after the fact: radar frames are the recorded ones whatever mode a
+policy picks (``radar_mode_counterfactual: false`` in the JSON).
+
+Ground truth comes from the RGB frames' ``meta["gt"]`` (sessions recorded on the simulated
+rover carry it): the newest logged RGB frame at ``t`` gives the truth at ``t``, so a
+decimated, stale frame is scored against where people really are. Without it mAP is null.
+Scenarios are the log's own segments (``meta["scenario"]`` of the RGB frames), or the whole
+log as one piece. Outcomes are kept in memory only (a log's frames are not reproducible
+from a seed), keyed by the logged frames and the resolution.
+"""
+
+from __future__ import annotations
+
+import bisect
+import time
+from collections import OrderedDict
+from typing import Any
+
+import cv2
+import numpy as np
+
+from respecd.errors import InputError
+from respecd.experiment.cache import OutcomeCache, outcome_key
+from respecd.experiment.frames import frame_time
+from respecd.experiment.outcomes import Outcome, detect
+from respecd.experiment.rollout import Piece
+from respecd.messages import Frame, SensorConfig
+from respecd.record import codec
+from respecd.record.reader import SessionLog, open_log
+
+_IMAGES = ("rgb", "thermal", "depth")
+
+
+class LogFrames:
+    """One sensor per modality of a session log: encoded frames indexed by time, decoded on demand."""
+
+    def __init__(self, session: SessionLog, modalities: tuple[str, ...]) -> None:
+        self.session = session
+        names: dict[str, str] = {}
+        for sensor, modality in session.sensors.items():
+            if modality in modalities and modality not in names.values():
+                names[sensor] = modality
+        topics = {f"/sensors/{s}": m for s, m in names.items()}
+        self.times: dict[str, list[float]] = {m: [] for m in topics.values()}
+        self.records: dict[str, list[tuple[str, bytes, int]]] = {m: [] for m in topics.values()}
+        for topic, schema, ns, data in session.messages(list(topics)):
+            modality = topics[topic]
+            self.times[modality].append((ns - session.start_ns) / 1e9)  # seconds since the log began
+            self.records[modality].append((schema, data, ns))
+        if not self.times.get("rgb"):
+            raise InputError(f"{session.path}: the log holds no RGB frames (the detector needs them)")
+        self._decoded: OrderedDict[tuple[str, int], Frame] = OrderedDict()
+
+    def index_at(self, modality: str, t: float) -> int | None:
+        """Index of the newest frame of ``modality`` logged at or before ``t``."""
+        times = self.times.get(modality) or []
+        i = bisect.bisect_right(times, t + 1e-9) - 1
+        return i if i >= 0 else None
+
+    def frame(self, modality: str, index: int) -> Frame:
+        key = (modality, index)
+        frame = self._decoded.get(key)
+        if frame is None:
+            schema, data, ns = self.records[modality][index]
+            frame = codec.decode_frame(schema, data, modality, ns)  # type: ignore[arg-type]
+            frame = Frame(frame.modality, self.times[modality][index], index, frame.data, frame.meta)
+            self._decoded[key] = frame
+            while len(self._decoded) > 48:
+                self._decoded.popitem(last=False)
+        return frame
+
+    @property
+    def duration_s(self) -> float:
+        return self.times["rgb"][-1]
+
+    def segments(self) -> list[Piece]:
+        """The log's scenario segments (from the RGB frames' metadata), whole seconds each."""
+        marks: list[tuple[float, str]] = []
+        for second in range(int(self.duration_s) + 1):
+            i = self.index_at("rgb", float(second))
+            if i is not None:
+                name = str(self.frame("rgb", i).meta.get("scenario", "log"))
+                if not marks or marks[-1][1] != name:
+                    marks.append((float(second), name))
+        pieces = []
+        for k, (start, name) in enumerate(marks):
+            end = marks[k + 1][0] if k + 1 < len(marks) else float(int(self.duration_s))
+            if end - start >= 1.0:
+                pieces.append(Piece(name, 0, end - start, start))
+        if not pieces:
+            raise InputError(f"{self.session.path}: the log is shorter than one decision period")
+        return pieces
+
+
+def _resize(frame: Frame, resolution: tuple[int, int] | None) -> Frame:
+    if resolution is None or frame.modality not in _IMAGES:
+        return frame
+    h, w = frame.data.shape[:2]
+    if (w, h) == tuple(resolution):
+        return frame
+    shrink = resolution[0] * resolution[1] < w * h
+    interp = cv2.INTER_AREA if shrink else (cv2.INTER_NEAREST if frame.modality == "depth" else cv2.INTER_LINEAR)
+    return Frame(frame.modality, frame.t, frame.seq, cv2.resize(frame.data, tuple(resolution), interpolation=interp),
+                 frame.meta)
+
+
+class LogEvaluator:
+    """The rollout's source for a recorded session (same hooks as ``outcomes.Evaluator``)."""
+
+    def __init__(self, detector: Any, frames: LogFrames) -> None:
+        self.detector = detector
+        self.frames = frames
+        self.inputs = ("rgb", *detector.model.spec.aux_modalities)
+        self.cache = OutcomeCache(None)
+        self.fingerprint = f"log:{frames.session.path.name}"
+        self.inference_s = 0.0
+
+    def world(self, piece: Piece, simulation: Any) -> Piece:
+        return piece  # a piece of the log: times are relative to its start
+
+    def static(self, piece: Piece) -> bool:
+        return False  # logged frames are all distinct
+
+    def _pick(self, modality: str, config: SensorConfig, t: float) -> int | None:
+        return self.frames.index_at(modality, frame_time(t, config.rate_hz))
+
+    def outcome(self, piece: Piece, configs: dict[str, SensorConfig], t: float, attribute: bool,
+                slot: int | None = None) -> Outcome:
+        t_log = piece.start_s + t
+        picks = {m: self._pick(m, c, t_log) for m, c in configs.items()
+                 if m in self.inputs and c.enabled and m in self.frames.times}
+        picks = {m: i for m, i in picks.items() if i is not None}
+        res = {m: configs[m].resolution for m in picks}
+        key = outcome_key(self.fingerprint, "", [f"{m}:{i}:{res[m]}" for m, i in picks.items()], attribute)
+        cached = self.cache.get(key)
+        if cached is not None:
+            return Outcome.from_json(cached)
+        start = time.perf_counter()
+        frames = {m: _resize(self.frames.frame(m, i), res[m]) for m, i in picks.items()}
+        prev = None
+        if "rgb" in picks:
+            j = self._pick("rgb", configs["rgb"], t_log - 1.0 / configs["rgb"].rate_hz)
+            prev = _resize(self.frames.frame("rgb", j), res["rgb"]) if j is not None else None
+        result = detect(self.detector, frames, prev, attribute)
+        self.inference_s += time.perf_counter() - start
+        self.cache.put(key, result.to_json())
+        return result
+
+    def truth(self, piece: Piece, t: float, resolution: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        from respecd.perception.data import gt_arrays
+
+        i = self.frames.index_at("rgb", piece.start_s + t)
+        frame = self.frames.frame("rgb", i) if i is not None else None
+        if frame is None or "gt" not in frame.meta:
+            return np.zeros((0, 4), np.float32), np.zeros(0, bool)
+        boxes, ignore = gt_arrays(frame.meta["gt"])
+        h, w = frame.data.shape[:2]
+        return boxes * np.array([resolution[0] / w, resolution[1] / h] * 2, dtype=np.float32), ignore
+
+    def imu(self, piece: Piece, t: float) -> np.ndarray:
+        i = self.frames.index_at("imu", piece.start_s + t)
+        return self.frames.frame("imu", i).data if i is not None else np.zeros(6, np.float32)
+
+
+def prepare_log(args: Any, detector: Any) -> tuple:
+    """The recorded session as the source: its scenario segments, its own frames for timing."""
+    session = open_log(args.log)
+    frames = LogFrames(session, ("rgb", "thermal", "radar", "depth", "imu"))
+    evaluator = LogEvaluator(detector, frames)
+    pieces = frames.segments()
+    limit = args.duration or (4.0 if args.quick else None)
+    if limit:
+        pieces = [Piece(p.scenario, p.seed, min(p.duration_s, limit), p.start_s) for p in pieces]
+    middle = frames.duration_s / 2
+
+    def frames_for(res: tuple[int, int]) -> dict[str, Frame]:
+        picks = {m: frames.index_at(m, middle) for m in evaluator.inputs if m in frames.times}
+        return {m: _resize(frames.frame(m, i), res if m == "rgb" else None) for m, i in picks.items()
+                if i is not None}
+
+    extra = {"log": str(args.log), "log_duration_s": round(frames.duration_s, 2), "radar_mode_counterfactual": False,
+             "ground_truth": "gt" in frames.frame("rgb", 0).meta}
+    return evaluator, pieces, frames_for, extra

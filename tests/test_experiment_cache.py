@@ -1,0 +1,108 @@
+"""The outcome cache: keys follow the checkpoint and the configuration, outcomes replay exactly."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from respecd.config import load_profile
+from respecd.experiment.cache import OutcomeCache, fingerprint, model_hash, outcome_key
+from respecd.experiment.frames import frame_id, frame_time, previous, render
+from respecd.experiment.outcomes import Evaluator, world_key
+from respecd.experiment.rollout import Piece, Rollout
+from respecd.experiment.setup import load_detector, perception_identity
+from respecd.messages import SensorConfig
+from respecd.sim.config import SimulationConfig
+from respecd.sim.world import World
+
+TINY_MODEL = {"rgb_widths": [4, 8, 8, 16, 16], "aux_widths": [4, 8, 8, 16, 16], "neck_widths": [8, 16, 16],
+              "reg_max": 4}
+
+
+def tiny_profile(tmp_path: Path) -> object:
+    """sim-rover with a very narrow detector and one RGB resolution, so a test infers in milliseconds."""
+    from importlib import resources
+
+    doc = yaml.safe_load((resources.files("respecd.profiles") / "sim-rover.yaml").read_text())
+    doc["perception"] = {"model": TINY_MODEL, "torch_threads": 1}
+    doc["controller"] = {"actions": {"rgb_resolutions": [[640, 360]], "rate_levels_hz": [1, 10, 30]}}
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return load_profile(path)
+
+
+@pytest.fixture(scope="module")
+def profile(tmp_path_factory: pytest.TempPathFactory) -> object:
+    return tiny_profile(tmp_path_factory.mktemp("profile"))
+
+
+def test_fingerprint_changes_with_checkpoint_and_settings(profile) -> None:
+    a = load_detector(profile, random_init=True, seed=1)
+    b = load_detector(profile, random_init=True, seed=2)
+    assert model_hash(a.model) == model_hash(load_detector(profile, random_init=True, seed=1).model)
+    assert model_hash(a.model) != model_hash(b.model)
+    ident = perception_identity(a, profile)
+    assert fingerprint(model_hash(a.model), ident) != fingerprint(model_hash(b.model), ident)
+    stricter = dict(ident, settings={**ident["settings"], "score_threshold": 0.5})
+    assert fingerprint(model_hash(a.model), ident) != fingerprint(model_hash(a.model), stricter)
+
+
+def test_key_changes_with_configuration_and_attribution() -> None:
+    rgb = SensorConfig("rgb", rate_hz=10.0, resolution=(640, 360))
+    radar = SensorConfig("radar", rate_hz=10.0, mode="range")
+
+    def key(*configs: SensorConfig, t: float = 2.35, attribute: bool = False, slot: int | None = None) -> str:
+        return outcome_key("fp", "w", [frame_id(c, t, slot).key() for c in configs], attribute)
+
+    base = key(rgb, radar)
+    assert base == key(radar, rgb)  # order of sensors does not matter
+    assert base == key(rgb, radar, t=2.39)  # same newest frames at 10 Hz
+    assert base != key(rgb, radar, t=2.41)  # a new frame arrived
+    assert base != key(SensorConfig("rgb", rate_hz=10.0, resolution=(960, 540)), radar)
+    assert base != key(SensorConfig("rgb", rate_hz=5.0, resolution=(640, 360)), radar)
+    assert base != key(rgb, SensorConfig("radar", rate_hz=10.0, mode="velocity"))
+    assert base != key(rgb, radar, attribute=True)
+    assert key(rgb, radar, slot=1) == key(rgb, radar, t=7.0, slot=5)  # static scene: noise slot 1 of 4
+    assert outcome_key("fp1", "w", ["x"], False) != outcome_key("fp2", "w", ["x"], False)
+
+
+def test_frame_time_and_stale_frames() -> None:
+    assert frame_time(2.35, 10.0) == pytest.approx(2.3)
+    assert frame_time(2.35, 1.0) == 2.0
+    assert frame_time(3.0, 30.0) == pytest.approx(3.0)
+    fid = frame_id(SensorConfig("rgb", rate_hz=5.0, resolution=(640, 360)), 1.0)
+    assert previous(fid, 5.0).t_us == 800_000
+
+
+def test_render_is_deterministic_per_frame() -> None:
+    world = World(SimulationConfig(scenarios=["good-light-moving"]), 3)
+    fid = frame_id(SensorConfig("rgb", rate_hz=10.0, resolution=(640, 360)), 1.23)
+    a, b = render(world, fid), render(world, fid)
+    assert np.array_equal(a.data, b.data)
+    later = render(world, frame_id(SensorConfig("rgb", rate_hz=10.0, resolution=(640, 360)), 1.53))
+    assert not np.array_equal(a.data, later.data)
+
+
+def test_outcome_is_computed_once_and_replayed(profile, tmp_path: Path) -> None:
+    detector = load_detector(profile, random_init=True)
+    fp = fingerprint(model_hash(detector.model), perception_identity(detector, profile))
+    cache = OutcomeCache(tmp_path / "o.sqlite")
+    evaluator = Evaluator(detector, cache, fp)
+    world = Rollout(profile, evaluator, {}).world(Piece("poor-light-moving", 1, 5.0))
+    configs = {"rgb": SensorConfig("rgb", rate_hz=10.0, resolution=(640, 360)),
+               "thermal": SensorConfig("thermal", rate_hz=10.0, resolution=(160, 120)),
+               "radar": SensorConfig("radar", rate_hz=10.0, mode="range")}
+    first = evaluator.outcome(world, configs, 2.05, attribute=True)
+    assert (cache.misses, cache.hits) == (1, 0)
+    assert first.luminance is not None and first.frame_diff is not None and first.radar_points is not None
+    again = evaluator.outcome(world, configs, 2.09, attribute=True)  # same frames at 10 Hz
+    assert (cache.misses, cache.hits) == (1, 1)
+    assert np.array_equal(again.boxes, first.boxes) and again.conf_agg == first.conf_agg
+    cache.close()
+    reopened = OutcomeCache(tmp_path / "o.sqlite")  # and from disk, in a later run
+    key = outcome_key(fp, world_key(world), [f.key() for f in evaluator.frame_ids(configs, 2.05).values()], True)
+    assert reopened.get(key) == first.to_json()
+    reopened.close()

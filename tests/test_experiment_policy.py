@@ -1,0 +1,125 @@
+"""Policy training on cached outcomes and the scenario benchmark, at a tiny size."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import structlog
+import yaml
+
+from respecd.cli import main as cli_main
+from respecd.config import load_profile
+from respecd.control.persist import read_table, save_table
+from respecd.errors import InputError
+from respecd.experiment import latency as lat
+from respecd.experiment.cache import OutcomeCache
+from respecd.experiment.compare import rl_controller
+from respecd.experiment.rollout import Piece, Rollout, controller_for
+from respecd.experiment.setup import load_detector, make_evaluator
+from respecd.experiment.training import TrainSettings, episode_pieces, train
+
+TINY_MODEL = {"rgb_widths": [4, 8, 8, 16, 16], "aux_widths": [4, 8, 8, 16, 16], "neck_widths": [8, 16, 16],
+              "reg_max": 4}
+
+
+@pytest.fixture(autouse=True)
+def fresh_logging():
+    """The CLI binds structlog to this test's captured stdout; unbind it afterwards."""
+    yield
+    structlog.reset_defaults()
+
+
+@pytest.fixture(scope="module")
+def profile_path(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """sim-rover with a very narrow detector and one RGB resolution (milliseconds per inference)."""
+    from importlib import resources
+
+    doc = yaml.safe_load((resources.files("respecd.profiles") / "sim-rover.yaml").read_text())
+    doc["perception"] = {"model": TINY_MODEL, "torch_threads": 1}
+    doc["controller"] = {"min_dwell_s": 0, "actions": {"rgb_resolutions": [[640, 360]], "rate_levels_hz": [1, 10, 30]}}
+    path = tmp_path_factory.mktemp("profile") / "tiny.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+@pytest.fixture(scope="module")
+def trained(profile_path: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two tiny episodes; the table saved through respecd.control.persist."""
+    profile = load_profile(profile_path)
+    detector = load_detector(profile, random_init=True)
+    evaluator = make_evaluator(detector, profile, use_cache=False)
+    rollout = Rollout(profile, evaluator, {})
+    world = rollout.world(Piece("good-light-static", 0, 2.0))
+    rollout.latency = lat.measure(detector, lat.sim_frames(world, evaluator.inputs), [(640, 360)], 1)
+    settings = TrainSettings(episodes=2, seeds=1, min_s=2.0, max_s=2.0)
+    result = train(profile, rollout, settings)
+    assert len(result.episode_reward) == 2 and result.decisions == 2 * 6 * 2
+    out = tmp_path_factory.mktemp("table") / "q.npz"
+    save_table(out, result.table, result.layout, {"profile": profile.name})
+    return out
+
+
+def test_training_updates_and_saves_the_table(trained: Path, profile_path: Path) -> None:
+    meta, q, visits = read_table(trained)
+    assert meta["updates"] == 2 * (6 * 2 - 1)  # every step but an episode's first scores the previous action
+    assert visits.sum() == meta["updates"]
+    fresh = controller_for(load_profile(profile_path), "learn").table
+    assert not np.array_equal(q, fresh.q)  # learning moved some Q-values off their initial value
+    controller = rl_controller(load_profile(profile_path), trained)
+    assert np.array_equal(controller.table.q, q) and controller.policy == "exploit"
+
+
+def test_rl_table_for_another_profile_is_refused(trained: Path) -> None:
+    with pytest.raises(InputError, match="another state/action space"):
+        rl_controller(load_profile("builtin:sim-rover"), trained)
+
+
+def test_episodes_are_randomized() -> None:
+    rng = np.random.default_rng(0)
+    settings = TrainSettings(seeds=3, min_s=2.0, max_s=5.0)
+    a, b = episode_pieces(settings, rng, 1.0), episode_pieces(settings, rng, 1.0)
+    assert sorted(p.scenario for p in a) == sorted(p.scenario for p in b) and len(a) == 6
+    assert [p.scenario for p in a] != [p.scenario for p in b] or [p.duration_s for p in a] != [p.duration_s for p in b]
+    assert all(2.0 <= p.duration_s <= 5.0 and 0 <= p.seed < 3 for p in a + b)
+
+
+def test_bench_scenarios_json(trained: Path, profile_path: Path, tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    out, md, png = tmp_path / "b.json", tmp_path / "b.md", tmp_path / "b.png"
+    code = cli_main(["bench", "scenarios", "--random-detector", "--profile", str(profile_path), "--table",
+                     str(trained), "--duration", "2", "--latency-repeats", "1", "--json", str(out),
+                     "--markdown", str(md), "--figure", str(png)])
+    assert code == 0
+    result = json.loads(out.read_text())
+    rows = result["scenarios"]
+    assert len(rows) == 18 and {r["policy"] for r in rows} == {"static", "heuristic", "rl"}
+    for row in rows:
+        assert set(row) == {"scenario", "policy", "action", "map50", "compute_ms_per_s", "energy_j", "bandwidth_bps"}
+        assert row["compute_ms_per_s"] > 0 and row["energy_j"] > 0 and row["bandwidth_bps"] > 0
+    assert set(result["summary"]) == {"rl_vs_static", "rl_vs_heuristic"}
+    for versus in result["summary"].values():
+        assert set(versus) == {"compute_reduction", "map50_drop"}
+    static = [r for r in rows if r["policy"] == "static"]
+    assert all(r["action"].startswith("rgb 640x360@30Hz thermal 320x240@30Hz") for r in static)
+    assert "| scenario | policy |" in md.read_text() and png.stat().st_size > 10_000
+    assert len(OutcomeCache.for_fingerprint(result["detector_fingerprint"], tmp_path / "cache" / "respecd" /
+                                            "experiment")) > 0  # the outcomes went to the user cache dir
+
+
+def test_bench_without_table_is_a_clear_error(profile_path: Path, tmp_path: Path, capsys) -> None:
+    code = cli_main(["bench", "scenarios", "--profile", str(profile_path), "--table", str(tmp_path / "none.npz")])
+    assert code == 2
+    assert "no Q-table" in capsys.readouterr().err
+
+
+def test_shipped_fallback_loads_read_only(trained: Path, profile_path: Path) -> None:
+    from respecd.experiment.shipped import load_shipped
+
+    mine = controller_for(load_profile(profile_path), "exploit")
+    assert load_shipped(mine.table, mine.layout(), trained)
+    other = controller_for(load_profile("builtin:sim-rover"), "exploit")
+    assert not load_shipped(other.table, other.layout(), trained)
+    assert trained.is_file()  # a mismatching table is left where it is
