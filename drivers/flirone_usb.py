@@ -58,9 +58,10 @@ class Transport(Protocol):
 class PyUsbTransport:
     """The camera through pyusb and libusb-1.0."""
 
-    def __init__(self, read_size: int = 1 << 20, fileio_handshake: bool = False) -> None:
+    def __init__(self, read_size: int = 1 << 20, fileio_handshake: bool = False, backend: Any = None) -> None:
         self.read_size = read_size
         self.fileio_handshake = fileio_handshake
+        self.backend = backend  # a pyusb backend; None: libusb-1.0
         self.recovered_errors = 0
         self._dev: Any = None
         self._usb: Any = None
@@ -70,7 +71,7 @@ class PyUsbTransport:
 
     def start(self) -> None:
         self._usb = _import_pyusb()
-        backend = self._usb.backend.libusb1.get_backend()
+        backend = self.backend or self._usb.backend.libusb1.get_backend()
         if backend is None:
             raise DriverUnavailableError(
                 "flirone: libusb-1.0 not found (pyusb has no backend); install it, e.g. apt install libusb-1.0-0"
@@ -111,16 +112,17 @@ class PyUsbTransport:
     def read(self, size: int, timeout_ms: int) -> bytes:
         usb = self._usb
         self._poll_side_endpoints()
-        view = memoryview(self._buf)[: min(size, len(self._buf))]
+        if len(self._buf) != size:  # pyusb fills an array.array in place (a memoryview is refused)
+            self._buf = array.array("B", bytes(size))
         try:
-            count = self._dev.read(EP_FRAMES, view, timeout_ms)
+            count = self._dev.read(EP_FRAMES, self._buf, timeout_ms)
         except usb.core.USBTimeoutError:
             return b""
         except usb.core.USBError as err:
             self._bulk_error(err)
             return b""
         self._failures = 0
-        return bytes(view[:count])
+        return self._buf[:count].tobytes()
 
     def _bulk_error(self, err: Any) -> None:
         if err.errno == errno.ENODEV:
