@@ -64,3 +64,53 @@ async def test_sleep_until_past_returns_at_once() -> None:
     clock = LockstepClock(5.0)
     await asyncio.wait_for(clock.sleep_until(4.0), timeout=1.0)
     assert clock.next_deadline() is None
+
+
+def test_paced_perception_skips_bundles_like_a_busy_detector() -> None:
+    """A 100 ms (modelled) detector fed 30 Hz bundles takes about every third one."""
+    import numpy as np
+
+    from respecd.messages import Bundle, Frame, Health, Percept, SyncStats
+    from respecd.queues import DropOldestQueue
+    from respecd.record.latency import LatencyModel
+    from respecd.record.pacing import ModelledPercepts, PacedBundles
+
+    model = LatencyModel(s_per_pixel=0.1 / (36 * 64), s_per_pixel_attributed=0.3 / (36 * 64), source="test")
+    sync = SyncStats(30.0, 0.0, 0.0, Health.GOOD)
+
+    async def main() -> tuple[list[float], list[float], int]:
+        clock = LockstepClock(0.0)
+        bundles = PacedBundles(DropOldestQueue[Bundle](2, "bundles"), clock)
+        measured: list[float] = []
+        percepts = ModelledPercepts(DropOldestQueue[Percept](4, "percepts"), model, bundles,
+                                    lambda p: measured.append(p.latency))
+        taken: list[float] = []
+
+        async def synchronizer() -> None:
+            for k in range(1, 61):  # 2 s at 30 Hz
+                await clock.sleep_until(k / 30)
+                rgb = Frame("rgb", k / 30, k, np.zeros((36, 64, 3), np.uint8))
+                bundles.put(Bundle(k / 30, {"rgb": rgb}, sync, k))
+
+        async def perception() -> None:
+            while True:
+                bundle = await bundles.get()
+                taken.append(clock.now())
+                percepts.put(Percept(bundle.t, (), 0.0, None, 0.001, bundle))
+
+        tasks = [asyncio.create_task(synchronizer()), asyncio.create_task(perception())]
+        await clock.run(until=2.0)
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+        modelled = []
+        while len(percepts):
+            modelled.append(percepts.get_nowait().latency)
+        return taken, modelled, bundles.dropped
+
+    with asyncio.Runner(loop_factory=LockstepLoop) as runner:
+        taken, modelled, dropped = runner.run(main())
+    assert 18 <= len(taken) <= 21  # ~10 per second over 2 s, not 60
+    assert all(b - a >= 0.1 - 1e-9 for a, b in zip(taken, taken[1:], strict=False))
+    assert dropped > 30  # the rest superseded in the drop-oldest queue, as live
+    assert modelled and all(abs(latency - 0.1) < 1e-9 for latency in modelled)

@@ -4,8 +4,10 @@ sensor replaced by a counterfactual ``ReplayDriver``, and report how a policy di
 ``--speed max`` runs in lockstep on the log's clock (``LockstepLoop`` + ``LockstepClock``)
 and is deterministic: same log + profile + seed give the same decisions. Two things would
 otherwise leak this machine's timing into the controller, so lockstep replaces them:
-the CPU probe is off, and the perception latency the controller sees is modelled from the
-log (``LatencyModel``); the measured latency still goes into the report's compute figures.
+the CPU probe is off, and perception latency is modelled from the log (``LatencyModel``):
+the controller sees the modelled latency, and perception is kept busy for it on the log's
+clock (``pacing``), so it skips bundles as it did on the robot. The measured latency
+still goes into the report's compute figures.
 ``--speed 1|2`` replays on a scaled wall clock with measured latencies, like a live run.
 """
 
@@ -22,30 +24,13 @@ from typing import Any
 import structlog
 
 from respecd.errors import InputError
-from respecd.messages import Percept
-from respecd.queues import DropOldestQueue
+from respecd.record import pacing, report_out
 from respecd.record import report as rpt
-from respecd.record import report_out
 from respecd.record.latency import LatencyModel
 from respecd.record.reader import SessionLog, open_log
 from respecd.record.replay_profile import first_frames, replay_profile
 
 log = structlog.get_logger(__name__)
-
-
-class _ModelledPercepts(DropOldestQueue[Percept]):
-    """The percept queue of a lockstep replay: the report sees the measured latency, the
-    controller a modelled one, so decisions do not depend on this machine's speed."""
-
-    def __init__(self, old: DropOldestQueue[Percept], model: LatencyModel, collector: rpt.Collector) -> None:
-        super().__init__(old.maxsize, old.name)
-        self.taps = old.taps
-        self._model = model
-        self._collector = collector
-
-    def put(self, item: Percept) -> bool:
-        self._collector.measured(item)
-        return super().put(self._model.apply(item))
 
 
 def run_replay(args: argparse.Namespace) -> int:
@@ -127,7 +112,7 @@ class _Replay:
         if lockstep:
             model = LatencyModel.from_log(self.session)
             self.latency_source = f"{model.source}: {model.s_per_pixel * 1e9:.1f} ns/px"
-            daemon.percepts = _ModelledPercepts(daemon.percepts, model, self.collector)
+            pacing.install(daemon, clock, model, self.collector.measured)
         else:
             daemon.percepts.taps.insert(0, self.collector.measured)
         started = time.perf_counter()
