@@ -42,6 +42,11 @@ class UVCConfig(DriverConfigBase):
     fourcc: str | None = Field(
         None, min_length=4, max_length=4, description="Camera pixel format, e.g. MJPG (needed for 720p30 on USB 2)."
     )
+    source: Literal["auto", "camera", "file"] = Field(
+        "auto",
+        description="camera: a live source (a V4L2 device, or a stream URL such as rtsp://); file: a video file "
+        "played on the clock; auto: an index or /dev path is a camera, a URL with :// too, anything else a file.",
+    )
     loop: bool = Field(False, description="Video files: start again at the end instead of ending the stream.")
     realtime: bool = Field(
         True, description="Video files: play at the file's frame rate on the clock (false: as fast as consumed)."
@@ -61,8 +66,14 @@ class UVCConfig(DriverConfigBase):
         return value
 
     @property
+    def is_v4l2(self) -> bool:
+        return isinstance(self.device, int) or self.device.startswith("/dev/")
+
+    @property
     def is_file(self) -> bool:
-        return isinstance(self.device, str) and not self.device.startswith("/dev/")
+        if self.source != "auto":
+            return self.source == "file"
+        return not self.is_v4l2 and "://" not in str(self.device)
 
 
 class UVCDriver(ThreadedDriver):

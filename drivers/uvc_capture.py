@@ -70,7 +70,7 @@ class UVCSource:
     def _open_capture(self) -> cv2.VideoCapture:
         device = self.cfg.device
         api = BACKENDS[self.cfg.backend]
-        if api == cv2.CAP_ANY and not self.cfg.is_file:
+        if api == cv2.CAP_ANY and self.cfg.is_v4l2:
             api = cv2.CAP_V4L2
         cap = cv2.VideoCapture(device, api) if isinstance(device, int) else cv2.VideoCapture(str(device), api)
         if not cap.isOpened():

@@ -216,3 +216,40 @@ async def test_start_after_the_stream_ended_starts_afresh(video: Path) -> None:
     finally:
         await driver.stop()
     assert len(first) == FRAMES and frame.meta["file_frame"] == 0 and frame.seq == FRAMES
+
+
+async def test_live_source_keeps_only_confirmed_sizes_and_fails_when_it_stops(video: Path) -> None:
+    """The file opened as a live source: it ignores size and rate requests like a fixed camera,
+    and its end looks like an unplugged camera."""
+    cfg = config(video, source="camera", resolution=(160, 120))
+    driver = UVCDriver(cfg, MonotonicClock())
+    await driver.start()
+    got: list[Frame] = []
+    try:
+        assert driver.capabilities.resolutions == (SIZE,)  # 640x480 and 160x120 were not confirmed
+        assert driver.applied.resolution == SIZE
+        assert "resolution 160x120 unsupported, using 320x240" in driver.applied.notes
+        with pytest.raises(DriverUnavailableError, match="stopped delivering frames"):
+            async with asyncio.timeout(10):
+                async for frame in driver.frames():
+                    got.append(frame)
+    finally:
+        await driver.stop()
+    assert got and got[0].meta == {"source": "camera"} and got[0].data.shape == (240, 320, 3)
+
+
+def test_camera_that_refuses_a_size_is_reopened_and_reported(video: Path) -> None:
+    """Worker-side: a size the capture will not take triggers one reopen, then an honest note."""
+    from respecd.drivers.uvc_capture import UVCSource
+
+    cfg = config(video, source="camera")
+    source = UVCSource(cfg, MonotonicClock(), SensorConfig("rgb", rate_hz=10.0), threading.Event())
+    source.open()
+    try:
+        first = source.cap
+        applied = source.reconfigure(SensorConfig("rgb", rate_hz=10.0, resolution=(160, 120)))
+        assert source.cap is not first  # reopened to set the size before streaming
+        assert applied.resolution == SIZE
+        assert "camera delivers 320x240, not 160x120" in applied.notes
+    finally:
+        source.close()
