@@ -16,8 +16,10 @@ from typing import Any
 
 from respecd.messages import Percept
 
-# Used only when the log recorded no percepts; 2-core x86-64 CPU, 640x360 RGB, see docs/RECORDING.md.
-DEFAULT_S_PER_MPIX = 0.12
+# Used only when the log recorded no percepts: the fusion detector's forward + NMS at 640x360
+# took 94 ms of CPU time (one torch thread) on the 2-core x86-64 development machine,
+# 0.094 s / 0.2304 Mpx = 0.41 s per megapixel (docs/PERFORMANCE.md, "record and replay").
+DEFAULT_S_PER_MPIX = 0.41
 ATTRIBUTION_FACTOR = 3.0  # DESIGN.md: a backward pass costs about 2-3 forward passes on a CPU
 
 
