@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import tempfile
 import time
 from pathlib import Path
@@ -181,6 +182,10 @@ def _replay(profile: Any, log: Path, work: Path, args: argparse.Namespace) -> di
         "log_s": entry["replayed_s"],
         "loop_wall_s": entry["wall_s"],
         "x_realtime": round(entry["replayed_s"] / entry["wall_s"], 2),
+        "loop_cpu_s": entry["cpu_s"],
+        "x_realtime_per_cpu_s": round(entry["replayed_s"] / entry["cpu_s"], 2),
+        "load_average_1min": round(os.getloadavg()[0], 2),
+        "latency_model": entry["latency_model"],
         "total_wall_s_with_startup": round(total, 2),
         "percepts": entry["compute"]["percepts"],
         "inference_ms_per_log_s": entry["compute"]["inference_ms_per_s"],

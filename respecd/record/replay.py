@@ -115,13 +115,14 @@ class _Replay:
             pacing.install(daemon, clock, model, self.collector.measured)
         else:
             daemon.percepts.taps.insert(0, self.collector.measured)
-        started = time.perf_counter()
+        started, cpu0 = time.perf_counter(), time.process_time()
         await self._drive(daemon, clock, lockstep)
-        wall = time.perf_counter() - started
+        wall, cpu = time.perf_counter() - started, time.process_time() - cpu0
         describe = getattr(daemon.controller, "describe_action", None)
         power = {s.name: s.power for s in self.profile.sensors}
         entry = rpt.summarize(self.collector, self.t0, self.t0 + self.duration, power, describe)
         entry["wall_s"] = round(wall, 3)  # the replay loop alone: imports and weight loading excluded
+        entry["cpu_s"] = round(cpu, 3)  # process CPU time (all threads) over the same span
         entry["latency_model"] = self.latency_source
         return entry
 
