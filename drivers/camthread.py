@@ -26,7 +26,7 @@ import numpy as np
 import structlog
 
 from respecd.drivers.base import Driver
-from respecd.errors import DriverError, DriverIOError, DriverTimeoutError
+from respecd.errors import DriverError, DriverIOError, DriverTimeoutError, DriverUnavailableError
 from respecd.messages import Frame
 
 log = structlog.get_logger(__name__)
@@ -154,7 +154,7 @@ class Worker:
         try:
             self.source.open()
         except BaseException as err:  # noqa: BLE001 - handed to start(), which raises it on the loop
-            self.opened.set_exception(err)
+            self.opened.set_exception(_as_unavailable(self.name, err))
             self._close_source()
             self.finished.set_result(None)
             return
@@ -219,6 +219,15 @@ class Worker:
             self.source.close()
         except Exception:  # noqa: BLE001 - closing a gone device must not mask the real error
             log.warning("worker_close_failed", sensor=self.name, exc_info=True)
+
+
+def _as_unavailable(name: str, err: BaseException) -> BaseException:
+    """A vendor error while opening means "not ready, retry later"; keep it as the cause."""
+    if isinstance(err, DriverError) or not isinstance(err, Exception):
+        return err
+    wrapped = DriverUnavailableError(f"{name}: cannot open: {type(err).__name__}: {err}")
+    wrapped.__cause__ = err
+    return wrapped
 
 
 async def wait_future(future: concurrent.futures.Future[T], timeout: float, what: str) -> T:
@@ -333,7 +342,12 @@ class ThreadedDriver(Driver):
         """Run ``fn`` in the worker thread (between reads); DriverTimeoutError if it hangs."""
         if self._worker is None:
             raise DriverError(f"{self.name}: not started")
-        return await wait_future(self._worker.call(fn), self.call_timeout_s, f"{self.name}: reconfigure")
+        try:
+            return await wait_future(self._worker.call(fn), self.call_timeout_s, f"{self.name}: reconfigure")
+        except DriverError:
+            raise
+        except Exception as err:  # a vendor error during a mode switch, wrapped at the boundary
+            raise DriverIOError(f"{self.name}: reconfigure failed: {type(err).__name__}: {err}") from err
 
     @property
     def worker(self) -> Worker | None:

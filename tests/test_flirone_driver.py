@@ -217,3 +217,17 @@ async def test_silent_camera_is_a_stall(chunks: list[bytes]) -> None:
                 got += 1
     await driver.stop()
     assert got >= 1 and worker_threads() == []
+
+
+class BusyOnStart(RecordedTransport):
+    def start(self) -> None:
+        raise OSError("Resource busy")  # what a vendor library raises, unwrapped
+
+
+async def test_vendor_error_on_open_is_unavailable(chunks: list[bytes]) -> None:
+    driver = FlirOneDriver(config(), MonotonicClock(), transport=BusyOnStart(chunks))
+    with pytest.raises(DriverUnavailableError, match="cannot open: OSError: Resource busy") as err:
+        await driver.start()
+    assert isinstance(err.value.__cause__, OSError)
+    await driver.stop()
+    assert worker_threads() == []
