@@ -3,7 +3,7 @@
 Resolution goes through CAP_PROP_FRAME_WIDTH/HEIGHT and is read back; a camera that will
 not switch while streaming is reopened with the size set before the first read. Rate goes
 through CAP_PROP_FPS where the camera takes it; the ``Decimator`` then trims to the exact
-request (``grab`` without ``retrieve`` for skipped frames, so they are never decoded). A
+request (skipped frames are grabbed but not retrieved, so they skip OpenCV's conversion). A
 video file plays at its own frame rate on the injected clock (``realtime``) or as fast as it
 is consumed, loops when asked, and is resized with ``cv2.resize`` (reported in the notes).
 Every OpenCV call runs in the driver's one worker thread; the capture itself lives in

@@ -179,7 +179,7 @@ class UVCSource:
         self.failures = 0
         t = self.clock.now()
         if not self.enabled or not self.decimator.accept(t):
-            return None  # grabbed but never decoded
+            return None  # grabbed, not retrieved: V4L2 converts (and decodes MJPG) only in retrieve
         return self._retrieve(t, {"source": "camera"})
 
     def _read_file(self) -> Sample | object | None:

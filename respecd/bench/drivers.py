@@ -15,7 +15,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from respecd.bench.cameras import flirone_assembler
+from respecd.bench.cameras import flirone_assembler, uvc_file
 from respecd.errors import InputError
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real"
@@ -90,4 +90,5 @@ def _time_round(captures: list[bytes], chunk: int | None, repeat: int) -> tuple[
 SECTIONS: dict[str, Callable[[argparse.Namespace], dict[str, Any]]] = {
     "radar_parser": radar_parser,
     "flirone_assembler": flirone_assembler,
+    "uvc_file": uvc_file,
 }
