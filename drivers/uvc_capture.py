@@ -79,7 +79,7 @@ class UVCSource:
             raise DriverUnavailableError(f"{self.cfg.name}: cannot open {what} {device!r} (backend {self.cfg.backend})")
         if not self.cfg.is_file:
             if self.cfg.fourcc:
-                cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*self.cfg.fourcc))
+                cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*self.cfg.fourcc))
             # a hung camera must not block the worker forever (V4L2 select timeout)
             cap.set(cv2.CAP_PROP_READ_TIMEOUT_MSEC, self.cfg.stall_timeout_s * 1000)
         return cap
