@@ -20,6 +20,8 @@ raw UART bytes were logged are decoded again by the live parser (``respecd.radar
 from __future__ import annotations
 
 import asyncio
+import queue
+import threading
 from collections.abc import AsyncIterator, Iterator
 from dataclasses import replace
 from typing import Any, Literal
@@ -30,7 +32,7 @@ from pydantic import Field
 
 from respecd.drivers.base import Capabilities, Decimator, DriverConfigBase, clamp_request
 from respecd.drivers.base import Driver as _Driver
-from respecd.errors import DriverUnavailableError
+from respecd.errors import DriverIOError, DriverUnavailableError
 from respecd.messages import Frame, RadarMode, Resolution, SensorConfig
 
 log = structlog.get_logger(__name__)
@@ -73,6 +75,7 @@ class ReplayDriver(_Driver):
         self._frames: Iterator[Frame] | None = None
         self._stopped = asyncio.Event()
         self._parser: Any = None
+        self._prefetch: _Prefetch | None = None
         self.served = 0
         self.dropped_by_rate = 0
         self.applied = clamp_request(self.capabilities, config.initial_request())
@@ -102,9 +105,13 @@ class ReplayDriver(_Driver):
         self._stopped.clear()
         if self._frames is None:  # a restart resumes where the log was, it does not rewind
             self._frames = log_.frames(self.source, log_.shared_demux())
+        self._prefetch = _Prefetch(self._frames, self.name)
 
     async def stop(self) -> None:
         self._stopped.set()
+        prefetch, self._prefetch = self._prefetch, None
+        if prefetch is not None:
+            await asyncio.to_thread(prefetch.close)
 
     async def apply(self, request: SensorConfig) -> SensorConfig:
         applied = clamp_request(self.capabilities, request)
@@ -114,10 +121,12 @@ class ReplayDriver(_Driver):
         return applied
 
     async def frames(self) -> AsyncIterator[Frame]:
-        assert self._frames is not None, "start() first"
+        prefetch = self._prefetch
+        assert prefetch is not None, "start() first"
         while not self._stopped.is_set():
-            # reading and decoding (JPEG/PNG, JSON) is blocking work: a worker thread
-            logged = await asyncio.to_thread(next, self._frames, None)
+            # usually decoded already by the prefetch thread; waiting for it is executor work,
+            # so a lockstep replay does not move the clock while a frame is still on its way
+            logged = await asyncio.to_thread(prefetch.get)
             if logged is None:
                 break
             await self.clock.sleep_until(logged.t)
@@ -165,6 +174,60 @@ class ReplayDriver(_Driver):
             self._parser = MmwParser()
         packets = [p for p in self._parser.feed(raw) if hasattr(p, "points")]
         return packets[-1].points if packets else frame.data
+
+
+class _Prefetch:
+    """Reads and decodes a sensor's next frames in a background thread, a few ahead.
+
+    Decoding depends on the log alone, so it may run ahead of the clock; only handing a
+    frame over is synchronised with the pipeline (``get`` from a worker thread).
+    """
+
+    DEPTH = 8  # frames decoded ahead: bounded memory (8 x 1280x720x3 = 22 MB at most)
+    POLL_S = 0.1  # how often a blocked put/get checks for close()
+
+    def __init__(self, frames: Iterator[Frame], name: str) -> None:
+        self._frames = frames
+        self._queue: queue.Queue[Frame | BaseException | None] = queue.Queue(self.DEPTH)
+        self._closed = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"replay-{name}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        item: Frame | BaseException | None = None
+        try:
+            for item in self._frames:
+                if not self._offer(item):
+                    return
+            item = None  # end of log
+        except Exception as err:  # noqa: BLE001 - a broken log reaches the driver task as its error
+            item = err
+        self._offer(item)
+
+    def _offer(self, item: Frame | BaseException | None) -> bool:
+        while not self._closed.is_set():
+            try:
+                self._queue.put(item, timeout=self.POLL_S)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def get(self) -> Frame | None:
+        """The next frame; None at the end of the log or once closed (blocking: worker thread)."""
+        while not self._closed.is_set():
+            try:
+                item = self._queue.get(timeout=self.POLL_S)
+            except queue.Empty:
+                continue
+            if isinstance(item, BaseException):
+                raise DriverIOError(f"replay log unreadable: {item}") from item
+            return item
+        return None
+
+    def close(self) -> None:
+        self._closed.set()
+        self._thread.join(timeout=2 * self.POLL_S + 1.0)
 
 
 def _resize(frame: Frame, resolution: Resolution) -> Frame:

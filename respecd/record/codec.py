@@ -61,6 +61,23 @@ def b64decode(text: str) -> bytes:
     return base64.b64decode(text)
 
 
+def frame_extra(payload: bytes) -> dict[str, Any]:
+    """The ``respecd`` object of a sensor message (time, seq, meta) without parsing the image.
+
+    It follows the base64 ``data`` string, which cannot contain a quote, so it is found by
+    searching past that string; anything unexpected falls back to a full parse.
+    """
+    start = payload.find(b'"data":"')
+    end = payload.find(b'"', start + 8) if start >= 0 else -1
+    key = payload.find(b'"respecd":', end) if end >= 0 else -1
+    if key >= 0 and payload.endswith(b"}"):
+        try:
+            return json.loads(payload[key + 10 : -1])
+        except ValueError:
+            pass
+    return json.loads(payload).get("respecd") or {}
+
+
 def _respecd_extra(frame: Frame) -> dict[str, Any]:
     meta = {k: v for k, v in frame.meta.items() if k != "raw"}  # raw bytes have their own channel
     return {"t": frame.t, "seq": frame.seq, "modality": frame.modality, "meta": meta}

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import statistics
+from collections.abc import Iterable
 from typing import Any
 
 from respecd.messages import Percept
@@ -31,9 +32,14 @@ class LatencyModel:
 
     @classmethod
     def from_log(cls, session: Any) -> LatencyModel:
+        return cls.from_percepts(session.json_messages("/respecd/percept"))
+
+    @classmethod
+    def from_percepts(cls, percepts: Iterable[dict[str, Any]]) -> LatencyModel:
+        """Fit from recorded ``respecd.Percept`` messages (default model when there are none)."""
         plain: list[float] = []
         attributed: list[float] = []
-        for msg in session.json_messages("/respecd/percept"):
+        for msg in percepts:
             pixels = int(msg.get("pixels") or 0)
             if pixels > 0 and msg.get("latency_s") is not None:
                 (attributed if msg.get("contributions") else plain).append(float(msg["latency_s"]) / pixels)

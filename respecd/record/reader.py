@@ -116,6 +116,26 @@ class SessionLog:
         messages = demux.messages_for(sensor) if demux is not None else self.messages([topic, raw])
         yield from _pair_frames(messages, topic, self.sensors.get(sensor, "rgb"))
 
+    def side_data(self, rgb_sensor: str | None) -> tuple[list[tuple[float, Any]], list[dict[str, Any]]]:
+        """One pass for what a replay needs besides frames: the RGB frames' ground truth as
+        (t, gt) — empty when the first RGB frame has none — and the recorded percepts."""
+        rgb_topic = f"/sensors/{rgb_sensor}" if rgb_sensor else None
+        truth: list[tuple[float, Any]] = []
+        percepts: list[dict[str, Any]] = []
+        want_truth = rgb_topic is not None
+        for topic, _, _, data in self.messages([t for t in (rgb_topic, "/respecd/percept") if t]):
+            if topic == rgb_topic and want_truth:
+                extra = codec.frame_extra(data)
+                meta = extra.get("meta") or {}
+                if "gt" not in meta:
+                    want_truth = False
+                    truth.clear()
+                    continue
+                truth.append((float(extra["t"]), meta["gt"]))
+            elif topic == "/respecd/percept":
+                percepts.append(json.loads(data))
+        return truth, percepts
+
     def json_messages(self, topic: str) -> Iterator[dict[str, Any]]:
         for _, _, _, data in self.messages([topic]):
             yield json.loads(data)

@@ -91,8 +91,9 @@ class _Replay:
         self.state_dir = state_dir
         self.seed = seed
         rgb = next((s for s in profile.sensors if s.modality == "rgb"), None)
+        truth, self.logged_percepts = session.side_data(rgb.source or rgb.name if rgb else None)
         self.collector = rpt.Collector(
-            rpt.build_reference(session, rgb.source or rgb.name if rgb else None),
+            rpt.build_reference(truth, self.logged_percepts),
             tuple(rgb.native_resolution) if rgb is not None and rgb.native_resolution else None,
         )
 
@@ -110,7 +111,7 @@ class _Replay:
         self.collector.attach(daemon.drivers)
         self.latency_source = "measured"
         if lockstep:
-            model = LatencyModel.from_log(self.session)
+            model = LatencyModel.from_percepts(self.logged_percepts)
             self.latency_source = f"{model.source}: {model.s_per_pixel * 1e9:.1f} ns/px"
             pacing.install(daemon, clock, model, self.collector.measured)
         else:
@@ -129,7 +130,7 @@ class _Replay:
     async def _drive(self, daemon: Any, clock: Any, lockstep: bool) -> None:
         end = self.t0 + self.duration
         bar = _progress_bar()(total=round(self.duration, 1), unit="s", desc="replay", disable=self.duration < 20,
-                   file=sys.stderr, leave=False)
+                              mininterval=1.0, file=sys.stderr, leave=False)
         task = asyncio.create_task(daemon.run(duration=self.duration), name="replay-daemon")
 
         def progress(t: float) -> None:

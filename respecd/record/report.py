@@ -10,7 +10,6 @@ the logged (native) RGB resolution.
 from __future__ import annotations
 
 import bisect
-import json
 from collections import Counter
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -103,24 +102,17 @@ class Reference:
         return self.boxes[i]
 
 
-def build_reference(session: Any, rgb_sensor: str | None) -> Reference:
-    """Ground truth from the RGB channel's frame meta, else the logged percepts."""
-    if rgb_sensor is not None:
-        ref = Reference("ground_truth")
-        for _, _, _, data in session.messages([f"/sensors/{rgb_sensor}"]):
-            extra = json.loads(data).get("respecd") or {}
-            meta = extra.get("meta") or {}
-            if "gt" not in meta:
-                break
-            ref.times.append(float(extra["t"]))
-            ref.boxes.append(split_truth(meta["gt"]))
-        if ref.times:
-            return ref
-    ref = Reference("log_detections")
-    for msg in session.json_messages("/respecd/percept"):
-        ref.times.append(float(msg["t"]))
-        ref.boxes.append((boxes_of(msg.get("detections")), np.zeros((0, 4))))
-    return ref if ref.times else Reference("none")
+def build_reference(truth: list[tuple[float, Any]], percepts: list[dict[str, Any]]) -> Reference:
+    """Ground truth from the RGB frames' meta when the log has it, else the logged detections."""
+    if truth:
+        return Reference("ground_truth", [t for t, _ in truth], [split_truth(gt) for _, gt in truth])
+    if percepts:
+        return Reference(
+            "log_detections",
+            [float(p["t"]) for p in percepts],
+            [(boxes_of(p.get("detections")), np.zeros((0, 4))) for p in percepts],
+        )
+    return Reference("none")
 
 
 def image_pixels(frames: Iterable[Frame]) -> int:
