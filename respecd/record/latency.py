@@ -41,7 +41,7 @@ class LatencyModel:
         attributed: list[float] = []
         for msg in percepts:
             pixels = int(msg.get("pixels") or 0)
-            if pixels > 0 and msg.get("latency_s") is not None:
+            if pixels > 0 and float(msg.get("latency_s") or 0.0) > 0.0:  # 0: no detector ran (passthrough)
                 (attributed if msg.get("contributions") else plain).append(float(msg["latency_s"]) / pixels)
         if not plain and not attributed:
             return cls()
