@@ -3,7 +3,8 @@
 * Recording overhead: the recorder taps real simulated frames (pre-rendered, cycled) on a
   real-time 30 Hz schedule; overhead = CPU time of the writer thread (encode, compress,
   write) plus the taps on the loop, over wall time, in % of one core. Measured for RGB
-  alone (640x360 JPEG at 30 Hz) and for the whole simulated rover.
+  alone (640x360 JPEG at 30 Hz) and for the whole simulated rover at its profile rates
+  (zstd chunks, and lz4 which trades file size for CPU).
 * Replay throughput: a simulated session is recorded in lockstep (fast, no detector), then
   replayed with ``--speed max`` through the full pipeline with the detector, RGB held at
   the chosen resolution (policy static, one RGB setting). Speed = log seconds / wall
@@ -35,14 +36,17 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="respecd-bench-replay-") as scratch:
         work = Path(args.keep) if args.keep else Path(scratch)
         work.mkdir(parents=True, exist_ok=True)
-        rgb_only = asyncio.run(_recording_overhead(work / "rgb-only.mcap", (width, height), args, rgb_only=True))
-        rover = asyncio.run(_recording_overhead(work / "rover.mcap", (width, height), args, rgb_only=False))
+        size = (width, height)
+        rgb_only = asyncio.run(_recording_overhead(work / "rgb-only.mcap", size, args, rgb_only=True))
+        rover = asyncio.run(_recording_overhead(work / "rover.mcap", size, args, rgb_only=False))
+        rover_lz4 = asyncio.run(_recording_overhead(work / "rover-lz4.mcap", size, args, False, "lz4"))
         profile, weights_note = _profile(args, (width, height), work)
         log = _record_simulated(profile, work / "session.mcap", args)
         replay = _replay(profile, log, work, args)
     return {
         "recording_rgb_30hz": rgb_only,
         "recording_sim_rover": rover,
+        "recording_sim_rover_lz4": rover_lz4,
         "replay": {**replay, "weights": weights_note, "rgb": f"{width}x{height}"},
     }
 
@@ -68,7 +72,9 @@ def _frames(size: tuple[int, int], seed: int) -> dict[str, list[Any]]:
     return out
 
 
-async def _recording_overhead(path: Path, size: tuple[int, int], args: argparse.Namespace, rgb_only: bool) -> dict:
+async def _recording_overhead(
+    path: Path, size: tuple[int, int], args: argparse.Namespace, rgb_only: bool, compression: str = "zstd"
+) -> dict:
     from respecd.clock import MonotonicClock
     from respecd.messages import Frame
     from respecd.record.config import RecordingConfig
@@ -77,7 +83,8 @@ async def _recording_overhead(path: Path, size: tuple[int, int], args: argparse.
     rates = {"rgb": 30.0} if rgb_only else {"rgb": 30.0, "thermal": 9.0, "radar": 10.0, "depth": 15.0, "imu": 30.0}
     frames = _frames(size, args.seed)
     clock = MonotonicClock()
-    recorder = Recorder(RecordingConfig(path=str(path)), {"name": "bench", "sensors": []}, clock)
+    config = RecordingConfig(path=str(path), compression=compression)  # type: ignore[arg-type]
+    recorder = Recorder(config, {"name": "bench", "sensors": []}, clock)
     recorder.start()
     tap_cpu = 0.0
     counts = dict.fromkeys(rates, 0)
@@ -100,6 +107,7 @@ async def _recording_overhead(path: Path, size: tuple[int, int], args: argparse.
     cpu = recorder.cpu_s + tap_cpu
     return {
         "streams_hz": rates,
+        "compression": compression,
         "wall_s": round(wall, 2),
         "frames": sum(counts.values()),
         "writer_cpu_s": round(recorder.cpu_s, 3),

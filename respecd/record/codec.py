@@ -53,8 +53,16 @@ def _json_default(value: Any) -> Any:
     return str(value)
 
 
-def _b64(data: bytes | np.ndarray) -> str:
-    return base64.b64encode(data if isinstance(data, bytes) else data.tobytes()).decode()
+def with_data(fields: dict[str, Any], data: bytes | np.ndarray, extra: dict[str, Any] | None) -> bytes:
+    """``fields`` + ``"data"`` (base64) + ``"respecd"``, as one JSON object, in that order.
+
+    The base64 text is spliced in as bytes: it needs no escaping, and letting ``json`` scan
+    a megabyte string costs more than the rest of the encoding (about 2 ms per depth frame).
+    """
+    raw = data if isinstance(data, bytes) else np.ascontiguousarray(data).tobytes()
+    head = dumps(fields)[:-1] + (b',"data":"' if fields else b'"data":"')
+    tail = b'"}' if extra is None else b'","respecd":' + dumps(extra) + b"}"
+    return head + base64.b64encode(raw) + tail
 
 
 def b64decode(text: str) -> bytes:
@@ -93,9 +101,8 @@ def encode_frame(frame: Frame, sensor: str, log_ns: int, formats: ImageFormats) 
             "pose": _IDENTITY_POSE,
             "point_stride": RADAR_STRIDE,
             "fields": [{"name": n, "offset": 4 * i, "type": NUMERIC_FLOAT32} for i, n in enumerate(RADAR_FIELDS)],
-            "data": _b64(points),
         }
-        return "foxglove.PointCloud", dumps({**head, **body, "respecd": _respecd_extra(frame)})
+        return "foxglove.PointCloud", with_data({**head, **body}, points.tobytes(), _respecd_extra(frame))
     if frame.modality == "imu":
         a = [float(x) for x in np.asarray(data, dtype=np.float64).reshape(-1)[:6]]
         body = {
@@ -114,13 +121,12 @@ def _encode_image(frame: Frame, head: dict[str, Any], formats: ImageFormats) -> 
         ext, params = (".jpg", [cv2.IMWRITE_JPEG_QUALITY, formats.jpeg_quality]) if jpeg else (".png", [])
         ok, buf = cv2.imencode(ext, data, params)
         if ok:
-            body = {"format": "jpeg" if ext == ".jpg" else "png", "data": _b64(buf.tobytes())}
-            return "foxglove.CompressedImage", dumps({**head, **body, "respecd": extra})
+            body = {"format": "jpeg" if ext == ".jpg" else "png"}
+            return "foxglove.CompressedImage", with_data({**head, **body}, buf.tobytes(), extra)
     if data.dtype == np.uint16 and formats.wide == "png":
         ok, buf = cv2.imencode(".png", data, [cv2.IMWRITE_PNG_COMPRESSION, 1])  # level 1: fast, still lossless
         if ok:
-            body = {"format": "png", "data": _b64(buf.tobytes())}
-            return "foxglove.CompressedImage", dumps({**head, **body, "respecd": extra})
+            return "foxglove.CompressedImage", with_data({**head, "format": "png"}, buf.tobytes(), extra)
     encoding = _raw_encoding(frame.modality, data)
     height, width = data.shape[:2]
     body = {
@@ -128,9 +134,9 @@ def _encode_image(frame: Frame, head: dict[str, Any], formats: ImageFormats) -> 
         "height": int(height),
         "encoding": encoding,
         "step": int(width * data.itemsize * (data.shape[2] if data.ndim == 3 else 1)),
-        "data": _b64(np.ascontiguousarray(data.astype(data.dtype.newbyteorder("<"), copy=False))),
     }
-    return "foxglove.RawImage", dumps({**head, **body, "respecd": extra})
+    pixels = np.ascontiguousarray(data.astype(data.dtype.newbyteorder("<"), copy=False))
+    return "foxglove.RawImage", with_data({**head, **body}, pixels.tobytes(), extra)
 
 
 _RAW_ENCODINGS = {  # Foxglove RawImage encodings; data is little-endian

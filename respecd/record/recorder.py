@@ -166,8 +166,8 @@ class Recorder:
             self._segments.write(sensor_topic(name), schema, meta, ns, payload, frame.t)
         elif kind == "raw":
             ns = self._log_ns(item.t)
-            payload = codec.dumps({"timestamp": codec.stamp(ns), "frame_id": name, "data": bytes(item.meta["raw"]),
-                                   "respecd": {"t": item.t, "seq": item.seq}})
+            head = {"timestamp": codec.stamp(ns), "frame_id": name}
+            payload = codec.with_data(head, bytes(item.meta["raw"]), {"t": item.t, "seq": item.seq})
             meta = {"sensor": name, "modality": item.modality, "format": "ti-mmwave-uart"}
             self._segments.write(raw_topic(name), "respecd.RawBytes", meta, ns, payload, item.t)
         else:
