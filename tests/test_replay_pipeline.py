@@ -5,15 +5,24 @@ a cut file, and refused with exit 2 for missing, empty or non-MCAP input."""
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+import structlog
 import yaml
 from mcap.reader import make_reader
 
 from respecd.cli import main
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+
+
+@pytest.fixture(autouse=True)
+def _fresh_logging() -> Iterator[None]:
+    """``respecd`` configures structlog onto this test's captured stdout; undo it after."""
+    yield
+    structlog.reset_defaults()
 
 
 @pytest.fixture(scope="module")
@@ -33,6 +42,7 @@ def session_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     argv = ["--config", str(config), "--duration", "4", "--record", str(log), "--state-dir", str(root / "state"),
             "--log-level", "warning", "--log-format", "json"]
     assert main(argv) == 0
+    structlog.reset_defaults()
     return log
 
 
