@@ -7,8 +7,10 @@
   (zstd chunks, and lz4 which trades file size for CPU).
 * Replay throughput: a simulated session is recorded in lockstep (fast, no detector), then
   replayed with ``--speed max`` through the full pipeline with the detector, RGB held at
-  the chosen resolution (policy static, one RGB setting). Speed = log seconds / wall
-  seconds of the replay loop (imports, profile and weight loading are reported apart).
+  the chosen resolution (policy static, one RGB setting), and once more without the
+  detector (the replay machinery alone). Speed = log seconds / wall seconds of the replay
+  loop (imports, profile and weight loading are reported apart). The log has no percepts,
+  so perception is paced by the default latency model (the detector's measured cost here).
 """
 
 from __future__ import annotations
@@ -28,6 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weights", default="builtin:sim-rover", help="detector checkpoint (default the shipped one)")
     parser.add_argument("--record-seconds", type=float, default=10.0, help="real-time recording measurement (s)")
     parser.add_argument("--seed", type=int, default=0, help="simulator seed")
+    parser.add_argument("--torch-threads", type=int, default=0,
+                        help="detector threads for the replay (default: the profile's, 1)")
     parser.add_argument("--keep", metavar="DIR", help="keep the generated log and report in DIR")
 
 
@@ -43,11 +47,17 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         profile, weights_note = _profile(args, (width, height), work)
         log = _record_simulated(profile, work / "session.mcap", args)
         replay = _replay(profile, log, work, args)
+        no_detector = profile.model_copy(
+            update={"perception": profile.perception.model_copy(update={"enabled": False})}
+        )
+        replay_core = _replay(no_detector, log, work / "core", args)
     return {
         "recording_rgb_30hz": rgb_only,
         "recording_sim_rover": rover,
         "recording_sim_rover_lz4": rover_lz4,
-        "replay": {**replay, "weights": weights_note, "rgb": f"{width}x{height}"},
+        "replay": {**replay, "weights": weights_note, "rgb": f"{width}x{height}",
+                   "torch_threads": profile.perception.torch_threads},
+        "replay_without_detector": replay_core,
     }
 
 
@@ -140,6 +150,8 @@ def _profile(args: argparse.Namespace, size: tuple[int, int], work: Path) -> tup
     actions = base.controller.actions.model_copy(update={"rgb_resolutions": (size,)})
     controller = base.controller.model_copy(update={"policy": "static", "actions": actions})
     perception = base.perception.model_copy(update={"weights": weights})
+    if args.torch_threads:
+        perception = perception.model_copy(update={"torch_threads": args.torch_threads})
     return base.model_copy(update={"sensors": sensors, "controller": controller, "perception": perception}), note
 
 
@@ -177,6 +189,7 @@ def _replay(profile: Any, log: Path, work: Path, args: argparse.Namespace) -> di
 
     from respecd.record.replay import run_replay
 
+    work.mkdir(parents=True, exist_ok=True)
     config = work / "replay-profile.yaml"
     config.write_text(yaml.safe_dump(profile.model_dump(mode="json")))
     report = work / "replay-report.json"
