@@ -93,18 +93,39 @@ def test_real_night_image_is_dark_and_day_image_is_not() -> None:
     assert bin3(samples[1].luminance, th.illumination) >= 1
 
 
-def test_frame_difference_compares_across_resolutions() -> None:
+def _rgb(seq: int, image: np.ndarray) -> Frame:
+    return Frame("rgb", seq / 10, seq, image)
+
+
+def test_motion_score_is_noise_relative_on_real_frames() -> None:
+    first, second = (REAL / "llvip_pairs" / "visible" / f"{i}.jpg" for i in ("190001", "190002"))
+    if not first.exists():
+        pytest.skip(f"shared real captures not found under {REAL}")
+    a, b = cv2.imread(str(first)), cv2.imread(str(second))
+    noisy = np.clip(a + np.random.default_rng(0).normal(0, 6, a.shape), 0, 255).astype(np.uint8)
+    still, moved = FeatureExtractor(), FeatureExtractor()
+    still.sample(_percept(0.0, {"rgb": _rgb(0, a)}))
+    moved.sample(_percept(0.0, {"rgb": _rgb(0, a)}))
+    # sensor noise alone: p99/median of |Gaussian| differences is 2.576/0.674 = 3.8
+    assert still.sample(_percept(0.1, {"rgb": _rgb(1, noisy)})).motion_image == pytest.approx(3.8, abs=0.4)
+    assert moved.sample(_percept(0.1, {"rgb": _rgb(1, b)})).motion_image > Thresholds().motion_image[1]
+
+
+def test_motion_score_skips_repeats_and_resolution_changes_and_uses_thermal() -> None:
+    rng = np.random.default_rng(1)
     extractor = FeatureExtractor()
-    big = np.full((720, 1280, 3), 100, np.uint8)
-    small = np.full((360, 640, 3), 100, np.uint8)
-    first = extractor.sample(_percept(0.0, {"rgb": Frame("rgb", 0.0, 0, big)}))
-    same = extractor.sample(_percept(0.1, {"rgb": Frame("rgb", 0.1, 1, small)}))
-    repeat = extractor.sample(_percept(0.2, {"rgb": Frame("rgb", 0.1, 1, small)}))  # same frame again
-    moved = extractor.sample(_percept(0.3, {"rgb": Frame("rgb", 0.3, 2, np.full((360, 640, 3), 151, np.uint8))}))
-    assert first.frame_diff is None
-    assert same.frame_diff == pytest.approx(0.0, abs=1e-6)
-    assert repeat.frame_diff is None
-    assert moved.frame_diff == pytest.approx(51 / 255, abs=1e-3)
+    big = rng.integers(0, 255, (720, 1280, 3), dtype=np.uint8)
+    small = rng.integers(0, 255, (360, 640, 3), dtype=np.uint8)
+    assert extractor.sample(_percept(0.0, {"rgb": _rgb(0, big)})).motion_image is None  # first frame
+    assert extractor.sample(_percept(0.1, {"rgb": _rgb(0, big)})).motion_image is None  # same frame again
+    assert extractor.sample(_percept(0.2, {"rgb": _rgb(1, small)})).motion_image is None  # new resolution
+    warm = np.full((120, 160), 29500, np.uint16) + rng.integers(0, 20, (120, 160), dtype=np.uint16)
+    walked = warm.copy()
+    walked[40:100, 100:120] = 31000  # a person at 310 K (centikelvin counts) stepped into view
+    frames = [Frame("thermal", 0.0, 0, warm), Frame("thermal", 0.1, 1, walked)]
+    extractor.sample(_percept(0.3, {"thermal": frames[0]}))
+    score = extractor.sample(_percept(0.4, {"thermal": frames[1]})).motion_image
+    assert score > Thresholds().motion_image[1]
 
 
 def test_imu_radar_and_sync_features() -> None:

@@ -46,7 +46,7 @@ def _observations(n: int, seed: int) -> list[Any]:
     u = rng.random((n, 8))
     contributions = ({"rgb": 0.7, "thermal": 0.2, "radar": 0.1}, {"rgb": 0.1, "thermal": 0.85, "radar": 0.05}, None)
     return [
-        Observation(t=float(i), n_percepts=10, illumination=u[i, 0], motion_image=u[i, 1] * 0.12,
+        Observation(t=float(i), n_percepts=10, illumination=u[i, 0], motion_image=2 + u[i, 1] * 20,
                     motion_imu=u[i, 2] * 0.8, radar_points=u[i, 3] * 40, load=u[i, 4], latency_s=u[i, 5] * 0.2,
                     sync=u[i, 6] * 2, conf_agg=u[i, 7], contributions=contributions[i % 3])
         for i in range(n)

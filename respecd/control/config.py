@@ -31,8 +31,9 @@ class Thresholds(StrictModel):
         "its exposure: dark / dim / bright.",
     )
     motion_image: tuple[float, float] = Field(
-        (0.02, 0.08),
-        description="Mean absolute luminance change between consecutive frames, 0..1: still / slow / fast.",
+        (5.0, 12.0),
+        description="Image motion score (p99 / median block change between consecutive frames; ~3.5-4 for a "
+        "static scene): still / slow / fast.",
     )
     motion_imu_rad_s: tuple[float, float] = Field(
         (0.1, 0.5), description="Mean gyroscope rate norm (rad/s) when an IMU is present: still / slow / fast."

@@ -1,9 +1,8 @@
 """From percepts to an ``Observation``: per-percept scene features and the sliding window.
 
 Features are cheap on purpose (they run on the event loop for every percept): images are
-read on a fixed 18×32 grid of sample points, so the cost does not depend on the resolution
-the controller chose, and two frames of different resolutions still compare point by
-point for the frame difference.
+read as fixed block grids (``imagestats``), so the cost does not depend on the resolution
+the controller chose.
 """
 
 from __future__ import annotations
@@ -13,13 +12,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from respecd.control.imagestats import BlockSampler, MotionMeter, spread
 from respecd.control.state import Observation
 from respecd.messages import Frame, Health, Percept
 
-GRID = (18, 32)  # sample points (rows, cols) per image
 REFERENCE_FPS = 30.0  # illumination is normalised to a 1/30 s exposure at gain 1
 _HEALTH_LEVEL = {Health.GOOD: 0, Health.FAIR: 1, Health.POOR: 2}
-_BGR_LUMA = np.array([0.114, 0.587, 0.299], dtype=np.float32) / 255.0  # Rec. 601, BGR order
 
 
 @dataclass(frozen=True, slots=True)
@@ -30,7 +28,7 @@ class Sample:
     conf_agg: float
     latency_s: float
     luminance: float | None = None
-    frame_diff: float | None = None
+    motion_image: float | None = None
     gyro: float | None = None
     radar_points: float | None = None
     sync_level: int | None = None
@@ -38,22 +36,18 @@ class Sample:
 
 
 class FeatureExtractor:
-    """Turns percepts into samples; remembers the last luminance grid for differencing."""
+    """Turns percepts into samples; keeps the last block grid per imager for motion."""
 
     def __init__(self) -> None:
-        self._grids: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
-        self._last_luma: np.ndarray | None = None
-        self._last_seq: int | None = None
+        self._sampler = BlockSampler()
+        self._motion = {"rgb": MotionMeter(), "thermal": MotionMeter()}
 
     def sample(self, percept: Percept) -> Sample:
-        luminance = frame_diff = gyro = points = level = None
+        luminance = motion = gyro = points = level = None
         bundle = percept.bundle
         if bundle is not None:
             level = _HEALTH_LEVEL.get(bundle.sync.health, 2)
-            rgb = bundle.frames.get("rgb")
-            if rgb is not None:
-                luminance, frame_diff = self._luma(rgb)
-                luminance = scene_light(luminance, rgb.meta)
+            luminance, motion = self._images(bundle.frames)
             imu = bundle.frames.get("imu")
             if imu is not None and imu.data.size >= 6:
                 gyro = float(np.linalg.norm(imu.data[3:6]))
@@ -62,29 +56,24 @@ class FeatureExtractor:
                 points = float(radar.data.shape[0])
         contributions = dict(percept.contributions) if percept.contributions else None
         return Sample(
-            percept.t, percept.conf_agg, percept.latency, luminance, frame_diff, gyro, points, level, contributions
+            percept.t, percept.conf_agg, percept.latency, luminance, motion, gyro, points, level, contributions
         )
 
-    def _luma(self, frame: Frame) -> tuple[float, float | None]:
-        image = frame.data
-        rows, cols = self._grid(image.shape[0], image.shape[1])
-        points = image[rows, cols]  # (18, 32, 3) uint8 BGR, or (18, 32) for grey
-        luma = points @ _BGR_LUMA if points.ndim == 3 else points.astype(np.float32) / 255.0
-        diff = None
-        # the same frame can sit in several bundles (slow camera): differencing it would read "still"
-        if self._last_luma is not None and frame.seq != self._last_seq:
-            diff = float(np.abs(luma - self._last_luma).mean())
-        if frame.seq != self._last_seq:
-            self._last_luma, self._last_seq = luma, frame.seq
-        return float(luma.mean()), diff
-
-    def _grid(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-        key = (height, width)
-        if key not in self._grids:
-            rows = np.linspace(0, height - 1, GRID[0]).round().astype(np.intp)
-            cols = np.linspace(0, width - 1, GRID[1]).round().astype(np.intp)
-            self._grids[key] = (rows[:, None], cols[None, :])
-        return self._grids[key]
+    def _images(self, frames: dict[str, Frame]) -> tuple[float | None, float | None]:
+        """Illumination from RGB; motion as the larger score of RGB and thermal (in the dark
+        the RGB noise hides a walking person that the thermal camera still sees)."""
+        luminance, scores = None, []
+        rgb = frames.get("rgb")
+        if rgb is not None:
+            blocks = self._sampler.blocks(rgb.data)
+            luminance = scene_light(float(blocks.mean()), rgb.meta)
+            scores.append(self._motion["rgb"].update(rgb.seq, rgb.data.shape, blocks))
+        thermal = frames.get("thermal")
+        if thermal is not None:
+            blocks = self._sampler.blocks(thermal.data)
+            scores.append(self._motion["thermal"].update(thermal.seq, thermal.data.shape, blocks, spread(blocks)))
+        known = [s for s in scores if s is not None]
+        return luminance, (max(known) if known else None)
 
 
 def scene_light(luminance: float, meta: dict) -> float:
@@ -135,7 +124,7 @@ class Window:
             t=now,
             n_percepts=len(s),
             illumination=self._scene("luminance", [x.luminance for x in s if x.luminance is not None]),
-            motion_image=self._scene("frame_diff", [x.frame_diff for x in s if x.frame_diff is not None]),
+            motion_image=self._scene("motion_image", [x.motion_image for x in s if x.motion_image is not None]),
             motion_imu=self._scene("gyro", [x.gyro for x in s if x.gyro is not None]),
             radar_points=self._scene("radar_points", [x.radar_points for x in s if x.radar_points is not None]),
             load=load,

@@ -47,7 +47,7 @@ class Observation:
     t: float
     n_percepts: int = 0
     illumination: float | None = None  # mean RGB luminance, 0..1
-    motion_image: float | None = None  # mean |Δluminance| between consecutive frames, 0..1
+    motion_image: float | None = None  # p99 / median block change between frames (imagestats)
     motion_imu: float | None = None  # mean gyro norm, rad/s
     radar_points: float | None = None  # mean points per radar frame
     load: float = 0.0  # max(CPU share, GPU share, latency / budget), 0..1
