@@ -21,6 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=20000, help="decision steps to time (default 20000)")
     parser.add_argument("--policy", choices=("learn", "exploit", "static", "heuristic"), default="learn")
     parser.add_argument("--mode", choices=("moves", "product"), default=None, help="override the action mode")
+    parser.add_argument("--percepts", type=int, default=2000, help="percepts for the feature/state timing")
     parser.add_argument("--rate-levels", default=None, help="override the rate levels, e.g. 1,10,30 (Hz)")
     parser.add_argument("--seed", type=int, default=0)
 
@@ -94,7 +95,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
     window = Window(config.window_s, config.latency_budget_s)
     extractor = FeatureExtractor()
-    percepts = _percepts(2000, args.seed)
+    percepts = _percepts(max(10, args.percepts // 10 * 10), args.seed)
     feature_ns: list[int] = []
     state_ns: list[int] = []
     for start in range(0, len(percepts), 10):  # a decision every 10 percepts (10 Hz, 1 s window)
