@@ -97,7 +97,7 @@ def test_outcome_is_computed_once_and_replayed(profile, tmp_path: Path) -> None:
                "radar": SensorConfig("radar", rate_hz=10.0, mode="range")}
     first = evaluator.outcome(world, configs, 2.05, attribute=True)
     assert (cache.misses, cache.hits) == (1, 0)
-    assert first.luminance is not None and first.frame_diff is not None and first.radar_points is not None
+    assert first.luminance is not None and first.motion is not None and first.radar_points is not None
     again = evaluator.outcome(world, configs, 2.09, attribute=True)  # same frames at 10 Hz
     assert (cache.misses, cache.hits) == (1, 1)
     assert np.array_equal(again.boxes, first.boxes) and again.conf_agg == first.conf_agg

@@ -89,7 +89,10 @@ class OutcomeCache:
         self.hits = self.misses = 0
         if path is not None:
             path.parent.mkdir(parents=True, exist_ok=True)
-            self._db = sqlite3.connect(path)
+            # several runs may share one file (a training and a benchmark): WAL lets readers
+            # through while one writes, and every put commits at once so no lock is held long
+            self._db = sqlite3.connect(path, timeout=60.0)
+            self._db.execute("PRAGMA journal_mode=WAL")
             self._db.execute("CREATE TABLE IF NOT EXISTS outcomes (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
             self._db.commit()
 
@@ -120,8 +123,7 @@ class OutcomeCache:
         if self._db is not None:
             self._db.execute("INSERT OR REPLACE INTO outcomes VALUES (?, ?)", (key, json.dumps(value)))
             self._pending += 1
-            if self._pending >= 20:  # commit in batches: an interrupted run keeps nearly all its work
-                self.flush()
+            self.flush()  # an outcome costs ~1 s to compute; a commit costs ~1 ms
 
     def flush(self) -> None:
         if self._db is not None and self._pending:

@@ -25,7 +25,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from respecd.messages import MODALITIES, Frame, SensorConfig
-from respecd.sim.render import ground_truth, render_depth, render_imu, render_radar, render_rgb, render_thermal
+from respecd.sim.render import (
+    ground_truth,
+    render_depth,
+    render_imu,
+    render_radar,
+    render_rgb,
+    render_thermal,
+    rgb_exposure,
+)
 from respecd.sim.world import World
 
 DETECTOR_MODALITIES = ("rgb", "thermal", "radar", "depth")
@@ -82,9 +90,10 @@ def render(world: World, fid: FrameId) -> Frame:
     state = world.state_at(t)
     rng = np.random.default_rng([world.seed, MODALITIES.index(fid.modality), abs(fid.t_us), 11 + (fid.t_us < 0)])  # type: ignore[arg-type]
     seq = fid.t_us  # unique per frame of this sensor: the feature extractor compares seq
-    if fid.modality == "rgb":
+    if fid.modality == "rgb":  # with the exposure metadata the driver adds (illumination undoes it)
         exposure = min(1.0 / fid.rate_hz, world.config.max_exposure_s)
-        return Frame("rgb", t, seq, render_rgb(state, fid.resolution, exposure, rng))
+        meta = rgb_exposure(state, fid.resolution, exposure)
+        return Frame("rgb", t, seq, render_rgb(state, fid.resolution, exposure, rng), meta)
     if fid.modality == "thermal":
         return Frame("thermal", t, seq, render_thermal(state, fid.resolution, rng), {"units": "cK"})
     if fid.modality == "depth":

@@ -146,10 +146,11 @@ class LogEvaluator:
             return Outcome.from_json(cached)
         start = time.perf_counter()
         frames = {m: _resize(self.frames.frame(m, i), res[m]) for m, i in picks.items()}
-        prev = None
-        if "rgb" in picks:
-            j = self._pick("rgb", configs["rgb"], t_log - 1.0 / configs["rgb"].rate_hz)
-            prev = _resize(self.frames.frame("rgb", j), res["rgb"]) if j is not None else None
+        prev = {}
+        for m in ("rgb", "thermal"):
+            j = self._pick(m, configs[m], t_log - 1.0 / configs[m].rate_hz) if m in picks else None
+            if j is not None:
+                prev[m] = _resize(self.frames.frame(m, j), res[m])
         result = detect(self.detector, frames, prev, attribute)
         self.inference_s += time.perf_counter() - start
         self.cache.put(key, result.to_json())

@@ -30,6 +30,7 @@ from respecd.sim.scenarios import SPECS
 from respecd.sim.world import World
 
 WORLD_SEGMENT_S = 3600.0  # one long segment: the same (scenario, seed) is the same world at any length
+MOTION_IMAGERS = ("rgb", "thermal")  # the feature extractor scores motion on these
 
 _GOOD_SYNC = SyncStats(30.0, 0.0, 0.0, Health.GOOD)
 
@@ -43,18 +44,18 @@ class Outcome:
     conf_agg: float
     contributions: dict[str, float] | None  # fresh scene score of this call (attributed calls only)
     luminance: float | None
-    frame_diff: float | None
+    motion: float | None  # image motion score (RGB and thermal), as the feature extractor gives it
     radar_points: float | None
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Outcome:
         return cls(np.asarray(d["boxes"], dtype=np.float32).reshape(-1, 4), np.asarray(d["scores"], dtype=np.float32),
-                   float(d["conf_agg"]), d["contributions"], d["luminance"], d["frame_diff"], d["radar_points"])
+                   float(d["conf_agg"]), d["contributions"], d["luminance"], d["motion"], d["radar_points"])
 
     def to_json(self) -> dict[str, Any]:
         return {"boxes": np.round(self.boxes, 2).tolist(), "scores": np.round(self.scores, 5).tolist(),
                 "conf_agg": self.conf_agg, "contributions": self.contributions, "luminance": self.luminance,
-                "frame_diff": self.frame_diff, "radar_points": self.radar_points}
+                "motion": self.motion, "radar_points": self.radar_points}
 
 
 def world_key(world: World) -> str:
@@ -107,7 +108,7 @@ class Evaluator:
     def _compute(self, world: World, ids: dict[str, FrameId], configs: Mapping[str, SensorConfig],
                  attribute: bool) -> Outcome:
         frames = {m: self._render(world, fid) for m, fid in ids.items()}
-        prev = self._render(world, previous(ids["rgb"], configs["rgb"].rate_hz)) if "rgb" in ids else None
+        prev = {m: self._render(world, previous(ids[m], configs[m].rate_hz)) for m in MOTION_IMAGERS if m in ids}
         return detect(self.detector, frames, prev, attribute)
 
     # the hooks a rollout uses to reach its scenes (a recorded log provides the same ones)
@@ -132,8 +133,11 @@ class Evaluator:
         return imu_frame(world, t).data
 
 
-def detect(detector: Any, frames: dict[str, Frame], prev_rgb: Frame | None, attribute: bool) -> Outcome:
-    """Run the detector on ``frames`` and take the scene features the controller's state needs."""
+def detect(detector: Any, frames: dict[str, Frame], previous: dict[str, Frame], attribute: bool) -> Outcome:
+    """Run the detector on ``frames`` and take the scene features the controller's state needs.
+
+    ``previous``: each imager's frame before the current one (the motion cue compares them).
+    """
     if attribute:  # a fresh score per call: the decay between calls is the rollout's job
         from respecd.perception.attribution import SceneScores
 
@@ -142,11 +146,13 @@ def detect(detector: Any, frames: dict[str, Frame], prev_rgb: Frame | None, attr
     boxes = np.array([d.box for d in percept.detections], dtype=np.float32).reshape(-1, 4)
     scores = np.array([d.confidence for d in percept.detections], dtype=np.float32)
     fresh = percept.contributions if attribute and percept.detections else None
-    extractor = FeatureExtractor()  # the daemon's own: previous RGB frame first, for the difference
-    if prev_rgb is not None and "rgb" in frames and prev_rgb.seq != frames["rgb"].seq:
-        extractor.sample(_percept({"rgb": prev_rgb}))
+    extractor = FeatureExtractor()  # the daemon's own: previous frames first, for the motion cue
+    before = {m: f for m, f in previous.items() if m in frames and f.seq != frames[m].seq}
+    if before:
+        extractor.sample(_percept(before))
     sample = extractor.sample(_percept(frames))
-    return Outcome(boxes, scores, percept.conf_agg, fresh, sample.luminance, sample.frame_diff, sample.radar_points)
+    motion = getattr(sample, "motion_image", None) if hasattr(sample, "motion_image") else sample.frame_diff
+    return Outcome(boxes, scores, percept.conf_agg, fresh, sample.luminance, motion, sample.radar_points)
 
 
 def _percept(frames: dict[str, Frame]) -> Percept:

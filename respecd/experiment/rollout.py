@@ -67,6 +67,17 @@ class WindowRecord:
     images: list[ImageResult] = field(default_factory=list)
 
 
+class _PieceRun:
+    """One piece inside a rollout: its world, time offset, sample instants and shared state."""
+
+    def __init__(self, piece: Piece, world: Any, offset: float, static: bool, window: Window,
+                 scores: SceneScores) -> None:
+        self.world, self.offset, self.static = world, offset, static
+        self.window, self.scores = window, scores
+        # the same instants for every policy: seeded by the piece, not by the run
+        self.rng = np.random.default_rng([piece.seed, zlib.crc32(piece.scenario.encode()), 5])
+
+
 def controller_for(profile: Any, policy: str) -> Controller:
     """The controller the daemon would build for ``profile`` over simulated sensors."""
     from respecd.drivers.sim import CAPABILITIES
@@ -112,30 +123,30 @@ class Rollout:
         records: list[WindowRecord] = []
         offset = 0.0
         for piece in pieces:
-            world = self.world(piece)
+            run = _PieceRun(piece, self.world(piece), offset, self.evaluator.static(piece), window, scores)
             steps = max(1, int(round(piece.duration_s / self.period)))
-            rng = np.random.default_rng([piece.seed, zlib.crc32(piece.scenario.encode()), 5])
-            static = self.evaluator.static(piece)  # the scene never changes: noise slots, see frames.py
             for k in range(steps):
-                by_modality = self._by_modality(applied)
-                offsets = (np.arange(self.samples) + rng.uniform(0.02, 0.98, self.samples)) / self.samples
-                images, points = [], []
-                for j, u in enumerate(offsets):
-                    t = (k + u) * self.period
-                    slot = k * self.samples + j if static else None
-                    image, n_points = self._sample(world, by_modality, t, offset, j == 0, window, scores, slot)
-                    images.append(image)
-                    points.append(n_points or 0.0)
+                images, points = self._observe(run, k, self._by_modality(applied))
                 now = offset + (k + 1) * self.period
                 position = controller.position
                 decision = controller.step(window.observe(now), applied)
-                record = self._record(piece.scenario, now, position, decision, applied, images, float(np.mean(points)))
+                records.append(self._record(piece.scenario, now, position, decision, applied, images, points))
                 applied = self._configure(applied, controller, decision.configs)
-                records.append(record)
                 if on_window is not None:
-                    on_window(record)
+                    on_window(records[-1])
             offset += steps * self.period
         return records
+
+    def _observe(self, run: _PieceRun, k: int, configs: dict[str, SensorConfig]) -> tuple[list[ImageResult], float]:
+        """The samples of window ``k`` into the controller's window; images and mean radar points."""
+        offsets = (np.arange(self.samples) + run.rng.uniform(0.02, 0.98, self.samples)) / self.samples
+        images, points = [], []
+        for j, u in enumerate(offsets):
+            slot = k * self.samples + j if run.static else None
+            image, n_points = self._sample(run, configs, (k + u) * self.period, j == 0, slot)
+            images.append(image)
+            points.append(n_points or 0.0)
+        return images, float(np.mean(points))
 
     def _by_modality(self, applied: dict[str, SensorConfig]) -> dict[str, SensorConfig]:
         out: dict[str, SensorConfig] = {}
@@ -143,15 +154,16 @@ class Rollout:
             out.setdefault(s.modality, applied[s.name])
         return out
 
-    def _sample(self, world: World, configs: dict[str, SensorConfig], t: float, offset: float, attribute: bool,
-                window: Window, scores: SceneScores, slot: int | None) -> tuple[ImageResult, float | None]:
+    def _sample(self, run: _PieceRun, configs: dict[str, SensorConfig], t: float, attribute: bool,
+                slot: int | None) -> tuple[ImageResult, float | None]:
+        world, offset = run.world, run.offset
         out = self.evaluator.outcome(world, configs, t, attribute, slot)
-        contributions = scores.update(offset + t, out.contributions) if attribute else None
+        contributions = run.scores.update(offset + t, out.contributions) if attribute else None
         res = configs["rgb"].resolution
         lat = self.latency[res]
         imu = self.evaluator.imu(world, t)
-        window.add(Sample(offset + t, out.conf_agg, lat.attribution_s if attribute else lat.forward_s,
-                          out.luminance, out.frame_diff, float(np.linalg.norm(imu[3:6])), out.radar_points, 0,
+        run.window.add(Sample(offset + t, out.conf_agg, lat.attribution_s if attribute else lat.forward_s,
+                          out.luminance, out.motion, float(np.linalg.norm(imu[3:6])), out.radar_points, 0,
                           contributions))
         boxes, ignore = self.evaluator.truth(world, t, res)
         return ImageResult(out.boxes, out.scores, boxes, ignore), out.radar_points
