@@ -114,3 +114,22 @@ def test_paced_perception_skips_bundles_like_a_busy_detector() -> None:
     assert all(b - a >= 0.1 - 1e-9 for a, b in zip(taken, taken[1:], strict=False))
     assert dropped > 30  # the rest superseded in the drop-oldest queue, as live
     assert modelled and all(abs(latency - 0.1) < 1e-9 for latency in modelled)
+
+
+def test_executor_results_come_back_in_submission_order() -> None:
+    """The first job is the slowest; its waiter still resumes first (ties break the same way)."""
+
+    async def main() -> list[int]:
+        loop = asyncio.get_running_loop()
+        resumed: list[int] = []
+
+        async def job(i: int, seconds: float) -> None:
+            await loop.run_in_executor(None, time.sleep, seconds)
+            resumed.append(i)
+
+        await asyncio.gather(*(job(i, 0.03 - 0.01 * i) for i in range(3)))
+        assert loop.in_flight == 0  # type: ignore[attr-defined]
+        return resumed
+
+    with asyncio.Runner(loop_factory=LockstepLoop) as runner:
+        assert runner.run(main()) == [0, 1, 2]

@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import heapq
 import itertools
+from collections import deque
 from collections.abc import Callable
 from typing import Any
 
@@ -26,22 +27,40 @@ POLL_S = 0.0002  # real seconds between checks while a worker thread is busy
 
 
 class LockstepLoop(asyncio.SelectorEventLoop):
-    """Counts executor jobs in flight until their result is back on the loop."""
+    """Counts executor jobs in flight, and hands their results back in submission order.
+
+    Threads finish in whatever order the machine decides; if results came back in that
+    order, the tasks waiting for them would resume (and, say, register their next clock
+    sleep) in a different order from run to run, and equal deadlines would break ties
+    differently. Delivering in submission order keeps a lockstep replay deterministic.
+    """
 
     def __init__(self) -> None:
         super().__init__()
         self.in_flight = 0
+        self._jobs: deque[tuple[asyncio.Future[Any], asyncio.Future[Any]]] = deque()
 
     def run_in_executor(self, executor: Any, func: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
-        future = super().run_in_executor(executor, func, *args)
+        inner = super().run_in_executor(executor, func, *args)
+        outer: asyncio.Future[Any] = self.create_future()
         self.in_flight += 1
-        # this callback is scheduled together with the awaiting task's wake-up, so the count
-        # drops only when the result is already queued on the loop
-        future.add_done_callback(self._job_done)
-        return future
+        self._jobs.append((inner, outer))
+        inner.add_done_callback(self._deliver)
+        return outer
 
-    def _job_done(self, _: asyncio.Future[Any]) -> None:
-        self.in_flight -= 1
+    def _deliver(self, _: asyncio.Future[Any]) -> None:
+        """Release every finished job at the head of the submission order."""
+        while self._jobs and self._jobs[0][0].done():
+            inner, outer = self._jobs.popleft()
+            self.in_flight -= 1
+            if outer.cancelled():
+                continue
+            if inner.cancelled():
+                outer.cancel()
+            elif inner.exception() is not None:
+                outer.set_exception(inner.exception())  # type: ignore[arg-type]
+            else:
+                outer.set_result(inner.result())
 
     def idle(self) -> bool:
         """Nothing runnable now and no executor job outstanding."""
