@@ -9,7 +9,6 @@ order: stages cancelled, drivers stopped, the Q-table saved, the log finished.
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import sys
 from collections.abc import Callable
 from pathlib import Path
@@ -30,6 +29,7 @@ from respecd.sync import HealthThresholds, Synchronizer
 log = structlog.get_logger(__name__)
 
 SHUTDOWN_TIMEOUT_S = 1.5  # SIGTERM to exit must stay within ~2 s
+CANCEL_GRACE_S = 0.3  # stages normally end at once when cancelled
 # Worker threads (renders, decoding, torch glue) hold the GIL for up to the switch interval
 # before the loop thread may run; CPython's 5 ms default alone would break the 30 Hz tick's
 # jitter budget, so the daemon asks for 1 ms.
@@ -94,6 +94,7 @@ class Daemon:
         self.perception: Any = None
         self.controller: Any = None
         self.last_flow_t: float | None = None
+        self.lingering: list[str] = []  # stage tasks still running after shutdown's budget
         self._tasks: set[asyncio.Task[None]] = set()
         self._wire_taps()
 
@@ -183,24 +184,43 @@ class Daemon:
             )
 
     async def shutdown(self) -> None:
-        """Cancel every stage, stop drivers, save the Q-table, finish logs — within ~2 s."""
+        """Cancel every stage, save the Q-table, finish logs, stop drivers — within ~2 s.
+
+        What must not be lost (Q-table, MCAP log) is closed right after the stages are
+        cancelled, before waiting on slow stragglers such as an inference still running in
+        its worker thread; ``lingering`` lists what had not finished when the budget ran out.
+        """
         self.notifier.stopping()
         log.info("stopping")
         tasks = list(self._tasks)
         for task in tasks:
             task.cancel()
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + SHUTDOWN_TIMEOUT_S
         if tasks:
-            _, pending = await asyncio.wait(tasks, timeout=SHUTDOWN_TIMEOUT_S)
-            for task in pending:
-                log.error("task_did_not_stop", task=task.get_name())
-        closers = [c for c in (self.controller, self.perception, *self.taps) if hasattr(c, "close")]
-        for closer in closers:
-            with contextlib.suppress(Exception):
-                result = closer.close()
-                if asyncio.iscoroutine(result):
-                    await asyncio.wait_for(result, timeout=SHUTDOWN_TIMEOUT_S)
+            await asyncio.wait(tasks, timeout=CANCEL_GRACE_S)
+        for closer in (self.controller, *self.taps):
+            await self._close(closer, max(deadline - loop.time(), CANCEL_GRACE_S))
+        pending = [t for t in tasks if not t.done()]
+        if pending:
+            await asyncio.wait(pending, timeout=max(deadline - loop.time(), 0.01))
+        self.lingering = [t.get_name() for t in tasks if not t.done()]
+        if self.lingering:
+            log.warning("stages_still_stopping", tasks=self.lingering)
         self.notifier.close()
         log.info("stopped")
+
+    @staticmethod
+    async def _close(component: Any, timeout: float) -> None:
+        close = getattr(component, "close", None)
+        if close is None:
+            return
+        try:
+            result = close()
+            if asyncio.iscoroutine(result):
+                await asyncio.wait_for(result, timeout=timeout)
+        except Exception:  # one component failing to close must not keep the others open
+            log.exception("close_failed", component=type(component).__name__)
 
     async def _status_loop(self) -> None:
         period = self.profile.telemetry.status_period_s
