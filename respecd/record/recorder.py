@@ -26,7 +26,12 @@ from respecd.record.writer import SegmentWriter, session_metadata
 
 log = structlog.get_logger(__name__)
 
-CLOSE_TIMEOUT_S = 10.0  # SIGTERM budget for draining the queue and writing the summary
+# SIGTERM: the daemon gives every tap 1.5 s to close, then the process ends with os._exit.
+# Queued frames are encoded for at most DRAIN_S; those still waiting are dropped (counted)
+# so that finish() -- summary and footer, a few ms -- always runs inside that budget.
+DRAIN_S = 0.8
+CLOSE_TIMEOUT_S = 5.0
+SENSOR_KINDS = ("frame", "raw")  # the costly ones to encode; the rest is always written
 
 TOPIC_PERCEPT = "/respecd/percept"
 TOPIC_DECISION = "/respecd/decision"
@@ -57,6 +62,7 @@ class Recorder:
         self._queue: deque[tuple[str, str, Any]] = deque()
         self._cond = threading.Condition()
         self._closing = False
+        self._drain_until = float("inf")
         self._thread: threading.Thread | None = None
         self._segments: SegmentWriter | None = None
         self._epoch_ns = 0
@@ -124,6 +130,7 @@ class Recorder:
             return
         with self._cond:
             self._closing = True
+            self._drain_until = time.monotonic() + DRAIN_S
             self._cond.notify()
         thread, self._thread = self._thread, None
         await asyncio.to_thread(thread.join, CLOSE_TIMEOUT_S)
@@ -143,6 +150,9 @@ class Recorder:
                     if not self._queue:
                         break
                     kind, name, item = self._queue.popleft()
+                if self._closing and kind in SENSOR_KINDS and time.monotonic() > self._drain_until:
+                    self.dropped += 1  # shutting down and out of time: frames give way to finish()
+                    continue
                 try:
                     self._write(kind, name, item)
                 except Exception as err:  # noqa: BLE001 - thread boundary: one bad message must not end the log
