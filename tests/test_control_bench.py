@@ -6,8 +6,16 @@ import json
 from pathlib import Path
 
 import pytest
+import structlog
 
 from respecd.cli import main
+
+
+@pytest.fixture(autouse=True)
+def _unbind_structlog():  # type: ignore[no-untyped-def]
+    """The bench command binds structlog to this test's captured stdout; unbind it afterwards."""
+    yield
+    structlog.reset_defaults()
 
 
 def test_bench_controller_writes_the_documented_keys(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

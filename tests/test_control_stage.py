@@ -59,7 +59,7 @@ class Rig:
         async for frame in driver.frames():
             self.latest[frame.modality] = frame
 
-    async def run(self, seconds: float) -> None:
+    async def run(self, seconds: float, percept_lag_s: float = 0.0) -> None:
         for driver in self.drivers.values():
             await driver.start()
         readers = [asyncio.create_task(self._read(d), name=f"read-{n}") for n, d in self.drivers.items()]
@@ -70,8 +70,9 @@ class Rig:
                 for _ in range(20):
                     await asyncio.sleep(0)
                 conf = 0.8 if "thermal" in self.latest else 0.2
-                bundle = Bundle(self.clock.now(), dict(self.latest), SyncStats(10.0, 1.0, 0.0, Health.GOOD))
-                self.percepts.put(Percept(self.clock.now(), (), conf, {"rgb": 0.3, "thermal": 0.7}, 0.01, bundle))
+                t = self.clock.now() - percept_lag_s  # a slow detector hands over old bundles
+                bundle = Bundle(t, dict(self.latest), SyncStats(10.0, 1.0, 0.0, Health.GOOD))
+                self.percepts.put(Percept(t, (), conf, {"rgb": 0.3, "thermal": 0.7}, 0.01, bundle))
             await asyncio.sleep(0.05)  # let the last decision's apply finish
         finally:
             stage.cancel()
@@ -124,6 +125,12 @@ async def test_a_failing_driver_is_logged_and_the_rest_are_configured(tmp_path: 
     assert rig.drivers["rgb"].applied.resolution == (1280, 720) and rig.drivers["rgb"].applied.rate_hz == 30.0
     assert rig.drivers["thermal"].applied.resolution == (320, 240)
     assert rig.drivers["radar"].applied == radar_before  # unchanged, retried at every decision
+
+
+async def test_percepts_count_when_they_arrive_even_from_a_slow_detector(tmp_path: Path) -> None:
+    rig = Rig(tmp_path, "learn")
+    await rig.run(4.0, percept_lag_s=2.5)  # 2.5 s of inference latency: older than the 1 s window
+    assert len(rig.decisions) >= 3
 
 
 @pytest.mark.parametrize("policy", ["learn", "static"])

@@ -42,7 +42,10 @@ class FeatureExtractor:
         self._sampler = BlockSampler()
         self._motion = {"rgb": MotionMeter(), "thermal": MotionMeter()}
 
-    def sample(self, percept: Percept) -> Sample:
+    def sample(self, percept: Percept, received_t: float | None = None) -> Sample:
+        """Features of one percept, stamped ``received_t`` (when the controller got it; the
+        window is "percepts received in the last window_s", so a slow detector's old
+        percepts still count) or the percept's own time."""
         luminance = motion = gyro = points = level = None
         bundle = percept.bundle
         if bundle is not None:
@@ -55,9 +58,8 @@ class FeatureExtractor:
             if radar is not None:
                 points = float(radar.data.shape[0])
         contributions = dict(percept.contributions) if percept.contributions else None
-        return Sample(
-            percept.t, percept.conf_agg, percept.latency, luminance, motion, gyro, points, level, contributions
-        )
+        t = percept.t if received_t is None else received_t
+        return Sample(t, percept.conf_agg, percept.latency, luminance, motion, gyro, points, level, contributions)
 
     def _images(self, frames: dict[str, Frame]) -> tuple[float | None, float | None]:
         """Illumination from RGB; motion as the larger score of RGB and thermal (in the dark

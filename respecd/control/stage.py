@@ -33,6 +33,8 @@ from respecd.queues import DropOldestQueue
 
 log = structlog.get_logger(__name__)
 
+STARVED_WARN_AFTER = 5  # empty windows in a row before warning (a slow detector skips some)
+
 
 class ControllerStage:
     """Owns the controller of one run; the daemon constructs it and runs ``run``."""
@@ -62,7 +64,7 @@ class ControllerStage:
         self._probe: SystemProbe | None = None
         self._prepared = False
         self._saved_updates = 0
-        self._starved = False
+        self._starved = 0  # consecutive decision windows without a percept
 
     # public ---------------------------------------------------------------------------
     def describe_action(self, action: int) -> str:
@@ -119,7 +121,8 @@ class ControllerStage:
     async def _consume(self, percepts: DropOldestQueue[Percept]) -> None:
         while True:
             percept = await percepts.get()
-            self._window.add(self._features.sample(percept))
+            # stamped on arrival: with a slow detector percept.t lags the clock by its latency
+            self._window.add(self._features.sample(percept, self.clock.now()))
 
     async def _decide_forever(self) -> None:
         period = self.config.decision_period_s
@@ -136,12 +139,14 @@ class ControllerStage:
         system = await asyncio.to_thread(self._probe.read) if self._probe else SystemSample(None, None, None)
         obs = self._window.observe(now, system.cpu, system.gpu, system.power_w)
         self._hint()
-        if obs.n_percepts == 0:
-            if not self._starved:
-                log.warning("controller_no_percepts", window_s=self.config.window_s)
-            self._starved = True
+        if obs.n_percepts == 0:  # nothing new seen: no state, no reward, no learning
+            self._starved += 1
+            if self._starved == STARVED_WARN_AFTER:
+                log.warning("controller_no_percepts", windows=self._starved, window_s=self.config.window_s)
             return None
-        self._starved = False
+        if self._starved >= STARVED_WARN_AFTER:
+            log.info("controller_percepts_back", after_windows=self._starved)
+        self._starved = 0
         decision = self.controller.step(obs, self.applied)
         applied = await self._apply(decision.configs)
         decision = replace(decision, configs=applied)
