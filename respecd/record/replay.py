@@ -109,8 +109,8 @@ class _Replay:
         daemon = Daemon(self.profile, clock, context, state_dir=self.state_dir, taps=[self.collector],
                         status_sink=lambda fields, line: log.debug("status", line=line))
         self.collector.attach(daemon.drivers)
-        self.latency_source = "measured"
-        if lockstep:
+        self.latency_source = "measured" if self.profile.perception.enabled else "none (perception off)"
+        if lockstep and self.profile.perception.enabled:
             model = LatencyModel.from_percepts(self.logged_percepts)
             self.latency_source = f"{model.source}: {model.s_per_pixel * 1e9:.1f} ns/px"
             pacing.install(daemon, clock, model, self.collector.measured)
