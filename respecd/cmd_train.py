@@ -25,9 +25,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sim: scenario runs rendered (random draws; 5 frames each; default 300)")
     parser.add_argument("--steps", type=int, default=100,
                         help="steps per epoch (0: one pass over the pool; default 100)")
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
-    parser.add_argument("--eval-frames", type=int, default=20,
-                        help="sim: held-out frames per scenario evaluated for the model card (0: skip)")
+    # 1 thread: on a 2-core box shared with other work, two spin-waiting threads ran 3x slower per step
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--eval-frames", type=int, default=10,
+                        help="sim: held-out frames per scenario evaluated for the model card (0: skip; default 10)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT.resume if present")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 

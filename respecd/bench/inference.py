@@ -3,12 +3,15 @@
 Inputs are real simulated frames (a lit scene with people, so NMS and attribution have
 targets), aligned once; the timed part is what the perception worker does per bundle:
 network + NMS (``forward_ms``), or network with gradients + NMS + one backward pass +
-per-box sums (``attribution_ms``). Medians over ``--repeats`` runs after a warm-up.
+per-box sums (``attribution_ms``). Medians over ``--repeats`` runs after a warm-up, as wall
+time and as process CPU time (``*_cpu_ms``); the 1-minute load average says how shared the
+machine was.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 from typing import Any
@@ -23,14 +26,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=1, help="world seed of the scene used as input")
 
 
-def _median_ms(fn, repeats: int) -> float:
+def _median_ms(fn, repeats: int) -> tuple[float, float]:
+    """Median wall ms and median process-CPU ms of ``fn``.
+
+    On a machine shared with other work the wall time includes waiting for a core; with one
+    torch thread the CPU time is what the same call takes on an idle core.
+    """
     fn()  # warm-up: allocator and oneDNN kernel selection for this shape
-    times = []
+    wall, cpu = [], []
     for _ in range(repeats):
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times) * 1000
+        wall.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
+    return statistics.median(wall) * 1000, statistics.median(cpu) * 1000
 
 
 def _frames(seed: int, size: tuple[int, int]):
@@ -62,18 +71,20 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     rows = []
     for w, h in RESOLUTIONS:
         frames = _frames(args.seed, (w, h))
-        align_ms = _median_ms(lambda f=frames: detector.prepare(f), args.repeats)
+        align_ms, _ = _median_ms(lambda f=frames: detector.prepare(f), args.repeats)
         aligned = detector.prepare(frames)
-        forward_ms = _median_ms(lambda a=aligned: detector.run(a, False), args.repeats)
-        attribution_ms = _median_ms(lambda a=aligned: detector.run(a, True), args.repeats)
+        forward_ms, forward_cpu = _median_ms(lambda a=aligned: detector.run(a, False), args.repeats)
+        attribution_ms, attribution_cpu = _median_ms(lambda a=aligned: detector.run(a, True), args.repeats)
         detections, _ = detector.run(aligned, False)
         rows.append({
             "rgb": f"{w}x{h}",
             "forward_ms": round(forward_ms, 1),
             "attribution_ms": round(attribution_ms, 1),
             "ratio": round(attribution_ms / forward_ms, 2),
+            "forward_cpu_ms": round(forward_cpu, 1),
+            "attribution_cpu_ms": round(attribution_cpu, 1),
             "align_ms": round(align_ms, 1),
             "detections": len(detections),
         })
     return {"resolutions": rows, "model_params": count_parameters(detector.model), "torch_threads": threads,
-            "repeats": args.repeats, "weights": args.weights}
+            "repeats": args.repeats, "weights": args.weights, "load_avg_1m": round(os.getloadavg()[0], 2)}

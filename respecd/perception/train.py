@@ -40,7 +40,7 @@ class TrainConfig:
     sim_segments: int = 300  # 50 runs of each of the six scenarios
     sim_per_segment: int = 5  # frames per run: same draw, different instants
     steps_per_epoch: int = 100  # 0: one pass over the pool in batches
-    threads: int = 2
+    threads: int = 1
     resume: bool = False
     progress: bool = True
     augment: AugmentConfig = field(default_factory=AugmentConfig)
