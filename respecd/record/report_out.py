@@ -16,6 +16,8 @@ from typing import Any
 
 import structlog
 
+from respecd.messages import MODALITIES
+
 log = structlog.get_logger(__name__)
 
 COLUMNS = (
@@ -98,7 +100,9 @@ def plot(report: dict[str, Any], png: Path) -> None:
         axes[2].plot(times, [p["conf_agg"] for p in entry["timeline"]], label=policy, lw=1)
         axes[3].plot(times, [p["latency_ms"] for p in entry["timeline"]], label=policy, lw=1)
         contributions = [(p["t"], p["contributions"]) for p in entry["timeline"] if p["contributions"]]
-        for modality in sorted({m for _, c in contributions for m in c}):
+        keys = {m for _, c in contributions for m in c}
+        modalities = keys & set(MODALITIES) or keys  # per-modality scores, not per input channel
+        for modality in sorted(modalities):
             axes[1].plot([t for t, _ in contributions], [c.get(modality, 0.0) for _, c in contributions],
                          label=f"{policy}: {modality}", lw=1, marker=".", ms=3)
     titles = ("action chosen at each decision", "contribution per modality", "ConfAgg", "perception latency (ms, load)")
