@@ -24,11 +24,12 @@ DEFAULT_S_PER_MPIX = 0.41
 ATTRIBUTION_FACTOR = 3.0  # DESIGN.md: a backward pass costs about 2-3 forward passes on a CPU
 
 
-@dataclasses.dataclass(frozen=True)
+@dataclasses.dataclass
 class LatencyModel:
     s_per_pixel: float = DEFAULT_S_PER_MPIX / 1e6
     s_per_pixel_attributed: float = ATTRIBUTION_FACTOR * DEFAULT_S_PER_MPIX / 1e6
     source: str = "default"
+    last_pixels: int = 0  # a bundle without RGB still runs the network at the last RGB size
 
     @classmethod
     def from_log(cls, session: Any) -> LatencyModel:
@@ -52,7 +53,9 @@ class LatencyModel:
     def latency(self, percept: Percept) -> float:
         frames = percept.bundle.frames if percept.bundle is not None else {}
         rgb = frames.get("rgb")
-        pixels = rgb.data.shape[0] * rgb.data.shape[1] if rgb is not None else 0
+        if rgb is not None and rgb.data.ndim >= 2:
+            self.last_pixels = int(rgb.data.shape[0] * rgb.data.shape[1])
+        pixels = self.last_pixels
         rate = self.s_per_pixel_attributed if percept.contributions is not None else self.s_per_pixel
         return pixels * rate
 
