@@ -1,9 +1,8 @@
 """``respecd policy show FILE``: the learned policy as a readable table.
 
-One row per visited state (named bins) with its greedy action (what ``--policy exploit``
-will do there), that action's Q-value, how often the state was updated and how many of its
-actions have been tried (with optimistic init an untried action keeps its optimistic
-value), plus how much of the state space the robot has seen.
+One row per visited state (named bins) with its best tried action (what ``--policy exploit``
+does there), that action's Q-value, how often the state was updated and how many of its
+actions have been tried, plus how much of the state space the robot has seen.
 The file carries its own layout (factor bins, action names), so no profile is needed.
 """
 
@@ -59,7 +58,8 @@ def render(meta: dict[str, Any], q: np.ndarray, visits: np.ndarray, limit: int =
     ]
     if visited.size == 0:
         return [*lines, "no state visited yet: nothing learned"]
-    best = q[visited].argmax(axis=1)
+    # what exploit does: the best *tried* action (an untried one only has its initial value)
+    best = np.where(visits[visited] > 0, q[visited], -np.inf).argmax(axis=1)
     best_q = q[visited, best]
     order = {"visits": np.argsort(-state_visits[visited], kind="stable"),
              "q": np.argsort(-best_q, kind="stable"),

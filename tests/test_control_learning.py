@@ -145,3 +145,22 @@ def test_wide_rows_take_the_numpy_path_with_the_same_semantics() -> None:
     table.update(0, 7, reward=1.0, next_state=1)
     assert table.q[0, 7] == pytest.approx(1.0 + 0.5 * 2.0)
     assert len({QTable(1, 500, Learning(init="zero"), seed=s).greedy(0) for s in range(10)}) > 1
+
+
+def test_exploit_acts_on_tried_actions_and_holds_where_nothing_was_learned() -> None:
+    controller = _toy(seed=2)
+    controller.config = controller.config.model_copy(
+        update={"learning": controller.config.learning.model_copy(update={"init": "optimistic"})})
+    table = controller.table
+    table.q[:] = 1.0  # optimistic
+    table.q[0] = [0.2, -0.4]  # dark: both tried, action 0 learned better
+    table.visits[0] = [3, 2]
+    table.q[2, 0] = -0.1  # bright: only action 0 tried, action 1 still at its optimistic 1.0
+    table.visits[2, 0] = 1
+    controller.policy = "exploit"
+    picks = {}
+    for step, light in enumerate((0.1, 0.8, 0.5)):
+        decision = controller.step(Observation(t=float(step), n_percepts=1, illumination=light, conf_agg=0.5))
+        picks[light] = (decision.action, controller.position)
+    assert picks[0.1][0] == 0 and picks[0.8][0] == 0  # never the untried optimistic action
+    assert picks[0.5][1] == picks[0.8][1]  # dim: never learned in, the configuration is held

@@ -39,8 +39,8 @@ def test_policy_show_prints_visited_states(tmp_path: Path, capsys: pytest.Captur
     state = controller.states.index(controller.states.from_names({
         "illumination": "dark", "motion": "still", "radar_density": "sparse", "load": "low",
         "sync": "good", "confidence": "high", "dominant": "none"}))
-    best = controller.space.describe(int(controller.table.q[state].argmax()))
-    assert best in dark and f"{controller.table.q[state].max():.3f}" in dark
+    best = controller.table.greedy_tried(state)
+    assert controller.space.describe(best) in dark and f"{controller.table.q[state, best]:.3f}" in dark
 
 
 def test_policy_show_limit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

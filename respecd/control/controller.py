@@ -129,7 +129,21 @@ class Controller:
             target = heuristic_position(self.space, self.states.names(bins))
             return self.space.config_id(target), target
         assert self.table is not None
+        if self.policy == "exploit":
+            return self._exploit(state)
         action = self.table.choose(state, self.epsilon)
+        return action, self.space.apply(self.position, action)
+
+    def _exploit(self, state: int) -> tuple[int, Position]:
+        """Best learned action; in a state never learned in, hold the configuration."""
+        assert self.table is not None
+        epsilon = self.config.learning.epsilon_exploit
+        if epsilon > 0.0 and self.table.rng.random() < epsilon:
+            action: int | None = int(self.table.rng.integers(self.space.n))
+        else:
+            action = self.table.greedy_tried(state)
+        if action is None:
+            return self.space.hold_action(self.position), self.position
         return action, self.space.apply(self.position, action)
 
     def _same_applied(self, applied: Mapping[str, SensorConfig]) -> bool:

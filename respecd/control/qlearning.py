@@ -59,6 +59,19 @@ class QTable:
             return ties[0]
         return ties[int(self.rng.integers(len(ties)))]
 
+    def greedy_tried(self, state: int) -> int | None:
+        """The best action among those ever updated in ``state``; None if none was.
+
+        A frozen policy should act on what it learned: with optimistic init an untried
+        action keeps its optimistic value and would otherwise win every argmax.
+        """
+        tried = np.flatnonzero(self.visits[state])
+        if tried.size == 0:
+            return None
+        values = self.q[state, tried]
+        ties = tried[values == values.max()]
+        return int(ties[0]) if ties.size == 1 else int(ties[self.rng.integers(ties.size)])
+
     def choose(self, state: int, epsilon: float) -> int:
         """ε-greedy: a uniformly random action with probability ``epsilon``."""
         if epsilon > 0.0 and self.rng.random() < epsilon:
