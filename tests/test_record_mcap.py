@@ -17,12 +17,12 @@ from mcap.reader import make_reader
 
 from respecd.clock import ManualClock
 from respecd.errors import InputError
-from respecd.messages import Decision, Detection, Frame, Percept, SensorConfig
+from respecd.messages import Bundle, Decision, Detection, Frame, Health, Percept, SensorConfig, SyncStats
 from respecd.record.config import RecordingConfig
 from respecd.record.reader import open_log
 from respecd.record.recorder import Recorder
 
-PROFILE = {"name": "test-rig", "sensors": []}
+PROFILE = {"name": "test-rig", "sensors": [{"name": "cam", "modality": "rgb"}]}
 
 
 def _validate(value: Any, schema: dict[str, Any], path: str = "$") -> None:
@@ -85,7 +85,8 @@ async def _record(tmp_path: Path, n: int = 45, **overrides: Any) -> tuple[Record
             recorder.on_frame(name, frame)
         if i % 15 == 0:
             detections = (Detection((1, 2, 30, 40), 0.8),)
-            recorder.on_percept(Percept(i / 30, detections, 0.8, {"rgb": 0.6, "thermal": 0.4}, 0.02))
+            bundle = Bundle(i / 30, {"rgb": frames["cam"]}, SyncStats(30.0, 0.1, 0.0, Health.GOOD), i)
+            recorder.on_percept(Percept(i / 30, detections, 0.8, {"rgb": 0.6, "thermal": 0.4}, 0.02, bundle))
             recorder.on_decision(Decision(i / 30, (0, 1, 2, 0, 0, 1), 4, -0.1, 0.2, (0.0, 0.5)))
             recorder.on_config("cam", SensorConfig("rgb", True, 15.0, (640, 360)))
         await asyncio.sleep(0.002)  # let the writer keep up: this test is not about drops
@@ -103,12 +104,18 @@ async def test_log_opens_with_mcap_reader_and_decodes_with_foxglove_schemas(tmp_
         metadata = {m.name: m.metadata for m in reader.iter_metadata()}
         assert json.loads(metadata["respecd.profile"]["json"])["name"] == "test-rig"
         seen: dict[str, int] = {}
+        image_stamps: dict[int, dict] = {}
+        overlays = []
         for schema, channel, message in reader.iter_messages():
             assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
             body = json.loads(message.data)
             _validate(body, json.loads(schema.data))
             seen[schema.name] = seen.get(schema.name, 0) + 1
+            if channel.topic == "/respecd/detections":
+                overlays.append(body)
+                assert channel.metadata == {"image_topic": "/sensors/cam"}
             if channel.topic == "/sensors/cam":
+                image_stamps[body["respecd"]["seq"]] = body["timestamp"]
                 image = cv2.imdecode(np.frombuffer(base64.b64decode(body["data"]), np.uint8), cv2.IMREAD_COLOR)
                 assert body["format"] == "jpeg" and image.shape == (360, 640, 3)
             if channel.topic == "/sensors/radar":
@@ -121,6 +128,10 @@ async def test_log_opens_with_mcap_reader_and_decodes_with_foxglove_schemas(tmp_
     assert seen["foxglove.RawImage"] == 2 * 45  # thermal mono16, depth 16UC1 (the default: exact, cheap)
     assert seen["foxglove.PointCloud"] == 45 and seen["respecd.RawBytes"] == 45
     assert seen["respecd.Decision"] == 3 and seen["respecd.SensorConfig"] == 3
+    assert len(overlays) == 3  # detections drawn over the very RGB frame they came from
+    assert overlays[1]["points"][0]["timestamp"] == image_stamps[15]
+    assert [(p["x"], p["y"]) for p in overlays[1]["points"][0]["points"]][2] == (30.0, 40.0)
+    assert overlays[1]["labels"][0]["text"] == "person 0.80"
 
 
 async def test_frames_come_back_exact_where_lossless(tmp_path: Path) -> None:

@@ -246,6 +246,26 @@ def encode_percept(p: Percept) -> bytes:
     })
 
 
+_BOX_COLOR = {"r": 0.1, "g": 0.9, "b": 0.2, "a": 1.0}
+_TEXT_BG = {"r": 0.0, "g": 0.0, "b": 0.0, "a": 0.6}
+_WHITE = {"r": 1.0, "g": 1.0, "b": 1.0, "a": 1.0}
+
+
+def encode_annotations(p: Percept, log_ns: int) -> bytes:
+    """Detections as a ``foxglove.ImageAnnotations`` overlay, stamped like the RGB frame."""
+    ts = stamp(log_ns)
+    points, labels = [], []
+    for d in p.detections:
+        x1, y1, x2, y2 = (float(v) for v in d.box)
+        corners = [{"x": x1, "y": y1}, {"x": x2, "y": y1}, {"x": x2, "y": y2}, {"x": x1, "y": y2}]
+        points.append({"timestamp": ts, "type": 2, "points": corners, "outline_color": _BOX_COLOR,
+                       "outline_colors": [], "fill_color": {"r": 0, "g": 0, "b": 0, "a": 0}, "thickness": 2.0})
+        labels.append({"timestamp": ts, "position": {"x": x1, "y": max(0.0, y1 - 14)},
+                       "text": f"{d.label} {d.confidence:.2f}", "font_size": 12.0, "text_color": _WHITE,
+                       "background_color": _TEXT_BG})
+    return dumps({"circles": [], "points": points, "labels": labels})
+
+
 def encode_decision(d: Decision) -> bytes:
     return dumps({
         "t": d.t,

@@ -37,6 +37,7 @@ TOPIC_PERCEPT = "/respecd/percept"
 TOPIC_DECISION = "/respecd/decision"
 TOPIC_CONFIG = "/respecd/config"
 TOPIC_SYNC = "/respecd/sync"
+TOPIC_DETECTIONS = "/respecd/detections"  # ImageAnnotations over the RGB channel, for Foxglove
 
 
 def sensor_topic(sensor: str) -> str:
@@ -45,6 +46,16 @@ def sensor_topic(sensor: str) -> str:
 
 def raw_topic(sensor: str) -> str:
     return f"/sensors/{sensor}/raw"
+
+
+def _rgb_sensor(profile: Any) -> str | None:
+    """Name of the profile's first RGB sensor (a Profile model or its plain-dict form)."""
+    sensors = profile.get("sensors", []) if isinstance(profile, dict) else getattr(profile, "sensors", [])
+    for sensor in sensors:
+        entry = sensor if isinstance(sensor, dict) else {"name": sensor.name, "modality": sensor.modality}
+        if entry.get("modality") == "rgb":
+            return str(entry.get("name"))
+    return None
 
 
 class Recorder:
@@ -63,6 +74,7 @@ class Recorder:
         self._cond = threading.Condition()
         self._closing = False
         self._drain_until = float("inf")
+        self._rgb_sensor = _rgb_sensor(profile)
         self._thread: threading.Thread | None = None
         self._segments: SegmentWriter | None = None
         self._epoch_ns = 0
@@ -168,6 +180,8 @@ class Recorder:
 
     def _write(self, kind: str, name: str, item: Any) -> None:
         assert self._segments is not None
+        if kind == "percept":
+            self._write_annotations(item)
         if kind == "frame":
             frame: Frame = item
             ns = self._log_ns(frame.t)
@@ -184,6 +198,16 @@ class Recorder:
             t = item[0] if kind == "config" else item.t
             payload, schema, topic = self._encode_own(kind, name, item)
             self._segments.write(topic, schema, {}, self._log_ns(t), payload, t)
+
+    def _write_annotations(self, percept: Percept) -> None:
+        """Boxes over the RGB image they were detected in (same timestamp as that frame)."""
+        rgb = percept.bundle.frames.get("rgb") if percept.bundle is not None else None
+        if rgb is None or self._segments is None:
+            return
+        ns = self._log_ns(rgb.t)
+        meta = {"image_topic": sensor_topic(self._rgb_sensor)} if self._rgb_sensor else {}
+        payload = codec.encode_annotations(percept, ns)
+        self._segments.write(TOPIC_DETECTIONS, "foxglove.ImageAnnotations", meta, ns, payload, percept.t)
 
     @staticmethod
     def _encode_own(kind: str, name: str, item: Any) -> tuple[bytes, str, str]:

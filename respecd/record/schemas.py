@@ -102,6 +102,56 @@ POINT_CLOUD: dict[str, Any] = {
     },
 }
 
+_COLOR = {"title": "foxglove.Color", "type": "object", "properties": {k: _NUMBER for k in "rgba"}}
+_POINT2 = {"title": "foxglove.Point2", "type": "object", "properties": {"x": _NUMBER, "y": _NUMBER}}
+_POINTS_TYPE = {
+    "title": "foxglove.PointsAnnotationType",
+    "oneOf": [
+        {"title": title, "const": i}
+        for i, title in enumerate(["UNKNOWN", "POINTS", "LINE_LOOP", "LINE_STRIP", "LINE_LIST"])
+    ],
+}
+
+IMAGE_ANNOTATIONS: dict[str, Any] = {
+    "title": "foxglove.ImageAnnotations",
+    "description": "Array of annotations for a 2D image",
+    "type": "object",
+    "properties": {
+        "circles": {"type": "array", "items": {"title": "foxglove.CircleAnnotation", "type": "object"}},
+        "points": {
+            "type": "array",
+            "items": {
+                "title": "foxglove.PointsAnnotation",
+                "type": "object",
+                "properties": {
+                    "timestamp": _TIME,
+                    "type": _POINTS_TYPE,
+                    "points": {"type": "array", "items": _POINT2},
+                    "outline_color": _COLOR,
+                    "outline_colors": {"type": "array", "items": _COLOR},
+                    "fill_color": _COLOR,
+                    "thickness": _NUMBER,
+                },
+            },
+        },
+        "labels": {
+            "type": "array",
+            "items": {
+                "title": "foxglove.TextAnnotation",
+                "type": "object",
+                "properties": {
+                    "timestamp": _TIME,
+                    "position": _POINT2,
+                    "text": {"type": "string"},
+                    "font_size": _NUMBER,
+                    "text_color": _COLOR,
+                    "background_color": _COLOR,
+                },
+            },
+        },
+    },
+}
+
 IMU: dict[str, Any] = {
     "title": "respecd.Imu",
     "type": "object",
@@ -193,7 +243,8 @@ SYNC: dict[str, Any] = {
 
 SCHEMAS: dict[str, dict[str, Any]] = {
     s["title"]: s
-    for s in (COMPRESSED_IMAGE, RAW_IMAGE, POINT_CLOUD, IMU, RAW_BYTES, SENSOR_CONFIG, PERCEPT, DECISION, SYNC)
+    for s in (COMPRESSED_IMAGE, RAW_IMAGE, POINT_CLOUD, IMAGE_ANNOTATIONS, IMU, RAW_BYTES, SENSOR_CONFIG, PERCEPT,
+              DECISION, SYNC)
 }
 
 
