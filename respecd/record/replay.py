@@ -35,6 +35,8 @@ log = structlog.get_logger(__name__)
 
 def run_replay(args: argparse.Namespace) -> int:
     """Entry point from ``respecd --replay``; InputError/ConfigError become exit 2."""
+    if args.duration is not None and not args.duration > 0:
+        raise InputError(f"--duration: expected a positive number of seconds, got {args.duration}")
     session = open_log(args.replay)
     if session.truncated:
         print(f"respecd: warning: {session.path} was cut short (no summary); replaying its "
