@@ -139,6 +139,17 @@ def test_cut_log_replays_up_to_the_cut_with_a_warning(
     assert 0.5 < entry["replayed_s"] < 3.9
 
 
+def test_speed_2_replays_on_a_scaled_wall_clock(session_log: Path, tmp_path: Path) -> None:
+    report = tmp_path / "x2.json"
+    argv = ["--replay", str(session_log), "--speed", "2", "--duration", "1.5", "--policy", "heuristic",
+            "--report", str(report), "--log-level", "warning"]
+    assert main(argv) == 0
+    entry = json.loads(report.read_text())["policies"]["heuristic"]
+    assert entry["speed"] == "2" and entry["latency_model"] == "none (perception off)"
+    assert entry["compute"]["frames"]["rgb"] > 10  # frames flowed in real (halved) time
+    assert entry["wall_s"] >= 0.7  # 1.5 s of log at 2x: paced by the wall clock, not lockstep
+
+
 @pytest.mark.parametrize(
     ("content", "message"),
     [(None, "no such file"), (b"", "empty file (0 bytes)"), (b"not a log at all\n", "not an MCAP file")],
