@@ -196,7 +196,12 @@ async def test_queue_drops_oldest_and_counts(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize(
     ("content", "expected"),
-    [(None, "no such file"), (b"", "empty file"), (b"PK\x03\x04 a zip, not a log", "not an MCAP file")],
+    [
+        (None, "no such file"),
+        (b"", "empty file"),
+        (b"PK\x03\x04 a zip, not a log", "not an MCAP file"),
+        (b"\x89MCAP0\r\n", "holds no messages"),  # the magic and nothing else
+    ],
 )
 def test_bad_files_are_input_errors(tmp_path: Path, content: bytes | None, expected: str) -> None:
     path = tmp_path / "session.mcap"

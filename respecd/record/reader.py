@@ -252,7 +252,7 @@ def _from_summary(session: SessionLog) -> bool:
             if summary is None or summary.statistics is None:
                 return False
             session.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-    except _CUT:
+    except (*_CUT, OSError):  # too short for a footer, or a cut file: scan it instead
         return False
     stats = summary.statistics
     for cid, ch in summary.channels.items():
