@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import sys
 from datetime import datetime, timezone
 from typing import Any
 
@@ -26,12 +28,13 @@ def main(args: argparse.Namespace) -> int:
 
     session = open_log(args.log)
     description = describe(session)
-    if args.json:
-        print(json.dumps(description, indent=2))
-    else:
-        print(render(description))
+    text = json.dumps(description, indent=2) if args.json else render(description)
     if args.profile and not args.json:
-        print(json.dumps(session.profile_dict(), indent=2))
+        text += "\n" + json.dumps(session.profile_dict(), indent=2)
+    try:
+        print(text, flush=True)
+    except BrokenPipeError:  # `respecd log info LOG | head`: the reader left, that is fine
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
     return 0
 
 
