@@ -119,3 +119,23 @@ def test_heuristic_rules() -> None:
     assert all(loaded[n].rate_hz < _heuristic(space)[n].rate_hz for n in loaded)
     assert all(r.rate_hz >= 1.0 for r in _heuristic(space, illumination="dark", motion="still",
                                                      load="high").values())
+
+
+async def test_mapping_through_the_real_flir_one_driver_clamps_and_reports() -> None:
+    from respecd.clock import ManualClock
+    from respecd.drivers.flirone import FlirOneConfig, FlirOneDriver
+
+    flir = FlirOneDriver(FlirOneConfig(name="flir"), ManualClock())  # constructor does no I/O
+    sensors = [DriverConfigBase(driver="sim", name="flir", modality="thermal", resolution=(160, 120), rate_hz=9)]
+    fitted = ActionSpace(build_slots(ActionSpaceConfig(), sensors, {"flir": flir.capabilities}), "moves")
+    assert fitted.slots[0].rates[-1] == 9.0  # the driver's cap became the top rung
+    for position in (fitted.maximum(), ((0, 0),)):
+        (request,) = fitted.requests(position)
+        applied = await flir.apply(request)
+        assert (applied.rate_hz, applied.resolution) == (request.rate_hz, request.resolution)
+    blind = ActionSpace(build_slots(ActionSpaceConfig(), sensors), "moves")  # capabilities unknown
+    (request,) = blind.requests(blind.maximum())
+    applied = await flir.apply(request)
+    assert request.rate_hz == 30.0 and applied.rate_hz == 9.0
+    assert any("9 Hz" in note for note in applied.notes)
+    assert blind.nearest({"flir": applied}) == ((1, 2),)  # what the controller then believes it runs
