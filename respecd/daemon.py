@@ -240,6 +240,9 @@ class Daemon:
     def status_fields(self) -> dict[str, Any]:
         drops = {name: q.dropped for name, q in self.frame_queues.items() if q.dropped}
         drops["bundles"] = self.bundles.dropped
+        recorder_drops = sum(getattr(tap, "dropped", 0) for tap in self.taps)
+        if recorder_drops:
+            drops["recorder"] = recorder_drops
         percept = getattr(self.perception, "last", None)
         decision = getattr(self.controller, "last", None)
         action_name = None
