@@ -34,7 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="log format (auto: JSON lines when stdout is not a terminal)",
     )
     parser.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
-    parser.add_argument("--seed", type=int, default=0, help="seed for the simulator and the controller (default 0)")
+    parser.add_argument(
+        "--seed", type=int, help="seed for the simulator and the controller (default: the profile's, else 0)"
+    )
     parser.add_argument("--policy", choices=POLICIES, help="override controller.policy from the profile")
     parser.add_argument(
         "--state-dir", metavar="DIR", help="Q-table and state (default: $STATE_DIRECTORY, else $XDG_STATE_HOME/respecd)"
@@ -101,7 +103,9 @@ async def run_live(profile: Any, args: argparse.Namespace, console: bool) -> int
         state_dir = resolve_state_dir(args.state_dir)
     except OSError as err:
         raise ConfigError(f"--state-dir: cannot use {args.state_dir!r}: {err}") from err
-    context = DriverContext(seed=args.seed, simulation=getattr(profile, "simulation", None))
+    if args.seed is not None:
+        profile = profile.model_copy(update={"controller": profile.controller.model_copy(update={"seed": args.seed})})
+    context = DriverContext(seed=args.seed or 0, simulation=getattr(profile, "simulation", None))
     recorder = make_recorder(profile, args.record, clock)
     if recorder is not None:
         recorder.start()

@@ -47,11 +47,11 @@ def run_replay(args: argparse.Namespace) -> int:
     if not firsts:
         raise InputError(f"{session.path}: the log holds no sensor frames to replay")
     speed = str(getattr(args, "speed", "max"))
-    profile = replay_profile(base, session, firsts, seed=args.seed, lockstep=speed == "max", policy=args.policy)
+    profile = replay_profile(base, session, firsts, seed=(args.seed or 0), lockstep=speed == "max", policy=args.policy)
     t0 = min(f.t for f in firsts.values())
     duration = session.duration_s if args.duration is None else min(args.duration, session.duration_s)
     entry = _run(profile, session, args, speed, t0, duration)
-    entry.update(policy=profile.controller.policy, seed=args.seed, speed=speed, truncated=session.truncated)
+    entry.update(policy=profile.controller.policy, seed=(args.seed or 0), speed=speed, truncated=session.truncated)
     return _emit(args, session, entry)
 
 
@@ -73,7 +73,7 @@ def _run(profile: Any, session: SessionLog, args: argparse.Namespace, speed: str
     state_dir = Path(args.state_dir) if args.state_dir else None
     with tempfile.TemporaryDirectory(prefix="respecd-replay-") as scratch:
         # a fresh Q-table per replay (unless --state-dir): two replays must not feed each other
-        runner = _Replay(profile, session, speed, t0, duration, state_dir or Path(scratch), args.seed)
+        runner = _Replay(profile, session, speed, t0, duration, state_dir or Path(scratch), (args.seed or 0))
         if speed == "max":
             with asyncio.Runner(loop_factory=LockstepLoop) as r:
                 return r.run(runner.run())
