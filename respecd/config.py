@@ -36,6 +36,9 @@ class SyncConfig(StrictModel):
     )
     min_rate_hz: float = Field(MIN_RATE_HZ, ge=MIN_RATE_HZ, le=MAX_RATE_HZ, description="Floor on the tick rate.")
     window_s: float = Field(1.0, ge=0.25, le=10, description="Window for jitter and stale-ratio statistics (s).")
+    tick_phase: float = Field(
+        0.5, ge=0, lt=1, description="Tick grid phase, in periods: ticks at (k + phase) / rate on the clock."
+    )
     jitter_ms_fair: float = Field(2.0, gt=0, description="Tick jitter (ms) above which health is fair.")
     jitter_ms_poor: float = Field(10.0, gt=0, description="Tick jitter (ms) above which health is poor.")
     stale_fair: float = Field(0.1, ge=0, le=1, description="Stale-frame ratio above which health is fair.")

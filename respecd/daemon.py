@@ -87,6 +87,7 @@ class Daemon:
             min_rate_hz=sync_cfg.min_rate_hz,
             max_rate_hz=sync_cfg.max_rate_hz,
             window_s=sync_cfg.window_s,
+            phase=sync_cfg.tick_phase,
             thresholds=HealthThresholds(
                 sync_cfg.jitter_ms_fair, sync_cfg.jitter_ms_poor, sync_cfg.stale_fair, sync_cfg.stale_poor
             ),

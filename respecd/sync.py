@@ -10,6 +10,7 @@ good / fair / poor for the controller state.
 from __future__ import annotations
 
 import asyncio
+import math
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
@@ -45,6 +46,18 @@ def tick_rate(rates: list[float], min_hz: float, max_hz: float) -> float:
     """The tick rate for these enabled sensor rates: the fastest, clamped to [min_hz, max_hz]."""
     fastest = max(rates, default=min_hz)
     return min(max(fastest, min_hz), max_hz)
+
+
+def grid_time(after: float, rate_hz: float, phase: float) -> float:
+    """The first tick time later than ``after`` on the grid ``(k + phase) / rate_hz``.
+
+    Ticks sit on a fixed grid of the clock rather than wherever the last tick landed, so
+    they never drift; ``phase`` places them between the instants at which sensors sharing
+    the clock's grid deliver (the simulator emits at ``k / rate``), when the loop is idle and
+    the newest frames have just arrived.
+    """
+    k = math.floor(after * rate_hz - phase) + 1
+    return (k + phase) / rate_hz
 
 
 def freshness_limit(tolerance_s: float, rate_hz: float) -> float:
@@ -94,6 +107,7 @@ class Synchronizer:
         max_rate_hz: float = 30.0,
         window_s: float = 1.0,
         thresholds: HealthThresholds | None = None,
+        phase: float = 0.5,
         on_tick: Callable[[float, float], None] | None = None,
     ) -> None:
         self.drivers = drivers
@@ -103,6 +117,7 @@ class Synchronizer:
         self.min_rate_hz = min_rate_hz
         self.max_rate_hz = max_rate_hz
         self.window = SyncWindow(window_s, thresholds or HealthThresholds())
+        self.phase = phase
         self.on_tick = on_tick  # (scheduled, actual) — used by the pipeline benchmark
         self.latest: dict[str, Frame] = {}
         self.last_stats = SyncStats(0.0, 0.0, 0.0, Health.GOOD)
@@ -113,18 +128,21 @@ class Synchronizer:
         return tick_rate(rates, self.min_rate_hz, self.max_rate_hz)
 
     async def run(self) -> None:
-        scheduled = self.clock.now()
+        rate = self.current_rate()
+        scheduled = grid_time(self.clock.now(), rate, self.phase)
         while True:
-            rate = self.current_rate()
-            scheduled += 1.0 / rate
-            now = self.clock.now()
-            if now - scheduled > 1.0 / rate:  # fell behind by a whole period: re-anchor, don't burst
-                scheduled = now
             await self.clock.sleep_until(scheduled)
             actual = self.clock.now()
             if self.on_tick is not None:
                 self.on_tick(scheduled, actual)
             self.tick(scheduled, actual, rate)
+            new_rate = self.current_rate()
+            if new_rate != rate or actual - scheduled > 1.0 / rate:
+                # a new rate, or behind by a whole period: re-anchor on the grid, don't burst
+                rate = new_rate
+                scheduled = grid_time(actual, rate, self.phase)
+            else:
+                scheduled += 1.0 / rate
 
     def tick(self, scheduled: float, actual: float, rate: float) -> Bundle:
         """Assemble and emit the bundle for one tick (public so tests can drive it directly)."""

@@ -148,3 +148,28 @@ async def test_run_ticks_at_sensor_rate_on_the_clock():
     assert 9 <= sync.bundles <= 11
     await cam.apply(replace(cam.applied, rate_hz=25.0))
     assert sync.current_rate() == 25.0
+
+
+@pytest.mark.parametrize(
+    ("after", "rate", "phase", "expected"),
+    [(0.0, 10.0, 0.5, 0.05), (0.05, 10.0, 0.5, 0.15), (0.149, 10.0, 0.5, 0.15), (1.0, 30.0, 0.0, 1.0 + 1 / 30)],
+)
+def test_ticks_sit_on_a_fixed_phase_grid(after, rate, phase, expected):
+    from respecd.sync import grid_time
+
+    assert grid_time(after, rate, phase) == pytest.approx(expected)
+
+
+async def test_ticks_fall_between_sensor_frames():
+    cam = make("cam", "rgb", 10.0)
+    sync, _, _, clock = rig(cam)
+    ticks: list[float] = []
+    sync.on_tick = lambda scheduled, actual: ticks.append(scheduled)
+    task = asyncio.create_task(sync.run())
+    for _ in range(50):
+        clock.advance(0.01)
+        await asyncio.sleep(0)
+        await asyncio.sleep(0)
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+    assert ticks[:3] == pytest.approx([0.05, 0.15, 0.25])  # half a period after the 10 Hz frame instants
