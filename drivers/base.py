@@ -211,10 +211,14 @@ class DriverHealth:
     last_error: str | None = None
     paused: bool = False  # e.g. the radar between sensorStop and sensorStart
     meter: RateMeter = field(default_factory=RateMeter)
+    resolution: Resolution | None = None  # measured: the last image frame's (width, height)
 
-    def frame(self, t: float) -> None:
+    def frame(self, t: float, image: Any = None) -> None:
+        """Count a frame at ``t``; ``image`` (H, W[, C]) also records the delivered size."""
         self.frames += 1
         self.meter.tick(t)
+        if image is not None and image.ndim >= 2:
+            self.resolution = (int(image.shape[1]), int(image.shape[0]))
 
     def error(self, err: BaseException | str) -> None:
         self.errors += 1

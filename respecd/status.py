@@ -28,8 +28,10 @@ def describe_setting(config: SensorConfig) -> str:
 
 def sensor_fields(driver: Driver) -> dict[str, Any]:
     health = driver.health
+    measured = health.resolution
     return {
         "setting": describe_setting(driver.applied),
+        "measured_resolution": f"{measured[0]}x{measured[1]}" if measured else None,
         "rate_hz": round(driver.applied.rate_hz, 1),
         "measured_hz": round(health.meter.rate_hz, 1),
         "frames": health.frames,
@@ -78,7 +80,10 @@ def format_line(fields: Mapping[str, Any], modalities: Mapping[str, str]) -> str
         label = MODALITY_ABBREV.get(modalities.get(name, ""), name)
         state = " PAUSED" if s["paused"] else ""
         errors = f" err={s['errors']}" if s["errors"] else ""
-        parts.append(f"{label} {s['setting']} {s['rate_hz']:g}/{s['measured_hz']:.1f}Hz{state}{errors}")
+        setting = s["setting"]
+        if s["measured_resolution"] and s["measured_resolution"] != setting and setting != "off":
+            setting = f"{setting}→{s['measured_resolution']}"  # the device delivers another size
+        parts.append(f"{label} {setting} {s['rate_hz']:g}/{s['measured_hz']:.1f}Hz{state}{errors}")
     sync = fields["sync"]
     parts.append(f"sync {sync['rate_hz']:g}Hz {sync['health']} j={sync['jitter_ms']:.1f}ms stale={sync['stale']:.0%}")
     parts.append("drops " + " ".join(f"{k}={v}" for k, v in fields["drops"].items()))

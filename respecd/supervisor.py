@@ -21,6 +21,8 @@ from respecd.messages import Frame
 
 log = structlog.get_logger(__name__)
 
+IMAGE_MODALITIES = frozenset({"rgb", "thermal", "depth"})
+
 
 @dataclass(frozen=True, slots=True)
 class Backoff:
@@ -90,7 +92,7 @@ def driver_runner(driver: Driver, sink: Callable[[Frame], None]) -> Callable[[],
             await driver.start()
             log.info("driver_started", sensor=driver.name, driver=driver.key)
             async for frame in driver.frames():
-                driver.health.frame(frame.t)
+                driver.health.frame(frame.t, frame.data if frame.modality in IMAGE_MODALITIES else None)
                 sink(frame)
         except BaseException as err:
             if not isinstance(err, asyncio.CancelledError):
