@@ -28,6 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--random-detector", action="store_true",
                         help="randomly initialised detector instead of the checkpoint (smoke tests only)")
     parser.add_argument("--latency-repeats", type=int, default=3, help="timed calls per resolution (median)")
+    parser.add_argument("--optimistic", action="store_true",
+                        help="save never-tried actions at their initial value (default: below the state's "
+                             "learned values, so exploiting only takes actions it has tried)")
 
 
 def _check(args: argparse.Namespace) -> None:
@@ -43,11 +46,11 @@ def main(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from respecd.config import load_profile
-    from respecd.control.persist import load_into, resolve_state_dir, save_table, table_path
+    from respecd.control.persist import load_into, read_table, resolve_state_dir, save_table, table_path
     from respecd.experiment import latency as lat
     from respecd.experiment.rollout import Piece, Rollout, controller_for
     from respecd.experiment.setup import load_detector, make_evaluator, rgb_resolutions
-    from respecd.experiment.training import TrainSettings, save_curve, train
+    from respecd.experiment.training import TrainSettings, conservative, save_curve, train
 
     _check(args)
     profile = load_profile(args.profile)
@@ -61,8 +64,10 @@ def main(args: argparse.Namespace) -> int:
                                   args.latency_repeats)
     print("latency (ms):", {k: round(v["forward_ms"]) for k, v in lat.to_json(rollout.latency).items()})
     table = probe.table
+    history: list[float] = []
     if args.resume and table is not None and load_into(out, table, probe.layout()):
-        print(f"resuming from {out} ({table.updates} updates, epsilon {table.epsilon:.3f})")
+        history = list(read_table(out)[0].get("episode_reward", []))
+        print(f"resuming from {out} ({table.updates} updates, {len(history)} episodes, epsilon {table.epsilon:.3f})")
     settings = TrainSettings(args.episodes, args.seeds, args.min_s, args.max_s, args.seed, args.max_minutes)
     bar = tqdm(total=args.episodes, desc="train-policy", unit="episode")
 
@@ -75,11 +80,14 @@ def main(args: argparse.Namespace) -> int:
         save_table(out, result.table, result.layout, _info(profile, args, result, evaluator))
 
     try:
-        result = train(profile, rollout, settings, table, progress)
+        result = train(profile, rollout, settings, table, progress, history)
     finally:
         bar.close()
         evaluator.cache.close()
-    save_table(out, result.table, result.layout, _info(profile, args, result, evaluator))
+    info = _info(profile, args, result, evaluator)
+    if not args.optimistic:
+        info["conservative_fill"] = conservative(result.table, 0 if probe.space.mode == "moves" else None)
+    save_table(out, result.table, result.layout, info)
     curve = save_curve(result, args.curve or out.with_suffix(".curve.png"))
     print(f"table: {out} ({result.table.updates} updates, {len(result.episode_reward)} episodes, "
           f"{result.seconds:.0f} s, detector {evaluator.inference_s:.0f} s)")

@@ -123,3 +123,17 @@ def test_shipped_fallback_loads_read_only(trained: Path, profile_path: Path) -> 
     other = controller_for(load_profile("builtin:sim-rover"), "exploit")
     assert not load_shipped(other.table, other.layout(), trained)
     assert trained.is_file()  # a mismatching table is left where it is
+
+
+def test_conservative_fill_prefers_tried_actions_and_keep() -> None:
+    from respecd.control.config import Learning
+    from respecd.control.qlearning import QTable
+    from respecd.experiment.training import conservative
+
+    table = QTable(3, 4, Learning(init="optimistic", optimistic_value=1.0))
+    table.update(0, 2, -0.5, 1)  # state 0: only action 2 tried, with a negative reward
+    table.update(1, 1, -2.0, 1)
+    changed = conservative(table, keep=0)
+    assert changed == 3 + 3 + 4
+    assert table.greedy(0) == 2 and table.greedy(1) == 1  # the tried action, not an untried 1.0
+    assert table.greedy(2) == 0  # a state never visited holds the configuration

@@ -34,9 +34,9 @@ def markdown(result: dict[str, Any]) -> str:
     lines.append("")
     for name, v in result["summary"].items():
         reduction, drop = v["compute_reduction"], v["map50_drop"]
-        percent = None if reduction is None else 100 * reduction
-        lines.append(f"- **{name.replace('_', ' ')}**: compute {_fmt(percent, '+.1f')} % less, "
-                     f"mAP@0.5 {_fmt(drop, '+.3f')} lower (absolute)")
+        compute = "n/a" if reduction is None else f"{abs(100 * reduction):.1f} % {'less' if reduction >= 0 else 'more'}"
+        accuracy = "n/a" if drop is None else f"{abs(drop):.3f} {'lower' if drop >= 0 else 'higher'}"
+        lines.append(f"- **{name.replace('_', ' ')}**: {compute} compute, mAP@0.5 {accuracy} (absolute)")
     return "\n".join(lines) + "\n"
 
 

@@ -57,12 +57,16 @@ def episode_pieces(settings: TrainSettings, rng: np.random.Generator, period: fl
 
 
 def train(profile: Any, rollout: Rollout, settings: TrainSettings, table: QTable | None = None,
-          on_episode: Callable[[int, TrainResult], None] | None = None) -> TrainResult:
-    """Run the episodes; returns the shared table and the learning curve."""
+          on_episode: Callable[[int, TrainResult], None] | None = None,
+          history: list[float] | None = None) -> TrainResult:
+    """Run the episodes; returns the shared table and the learning curve.
+
+    ``history``: mean rewards of earlier episodes of a resumed table (kept on the curve).
+    """
     first = controller_for(profile, "learn")
     shared = table if table is not None else first.table
     assert shared is not None
-    result = TrainResult(shared, first.layout())
+    result = TrainResult(shared, first.layout(), list(history or []), [float("nan")] * len(history or []))
     rng = np.random.default_rng([settings.seed, 17])
     start = time.monotonic()
     for episode in range(settings.episodes):
@@ -80,6 +84,27 @@ def train(profile: Any, rollout: Rollout, settings: TrainSettings, table: QTable
         if settings.max_minutes is not None and result.seconds > 60 * settings.max_minutes:
             break
     return result
+
+
+def conservative(table: QTable, keep: int | None = 0, margin: float = 1.0) -> int:
+    """Make exploiting never take an action it has no evidence for; returns entries changed.
+
+    A never-tried (state, action) still holds its initial value (optimistic 1.0), which
+    beats every learned value when rewards are negative, so a greedy policy would pick the
+    untried action in every state that has one. Here an untried action gets its state's
+    lowest learned value minus ``margin``; in a state never visited at all, ``keep`` (the
+    moves-mode hold action; None in product mode) is preferred: hold the configuration.
+    """
+    tried = table.visits > 0
+    changed = 0
+    for s in np.flatnonzero(~tried.all(axis=1)):
+        row = tried[s]
+        low = float(table.q[s, row].min()) - margin if row.any() else -margin
+        table.q[s, ~row] = low
+        changed += int((~row).sum())
+        if not row.any() and keep is not None:
+            table.q[s, keep] = low + margin / 2
+    return changed
 
 
 def save_curve(result: TrainResult, path: Path, title: str = "respecd train-policy") -> Path:
