@@ -34,16 +34,20 @@ class Rig:
     def __init__(self, tmp_path: Path, policy: str, broken_radar: bool = False) -> None:
         profile = load_profile("builtin:sim-rover")
         self.clock = ManualClock()
-        context = DriverContext(seed=5, simulation=SimulationConfig(
-            scenarios=["good-light-static", "poor-light-static"], scenario_duration_s=3.0))
+        context = DriverContext(
+            seed=5,
+            simulation=SimulationConfig(scenarios=["good-light-static", "poor-light-static"], scenario_duration_s=3.0),
+        )
         self.drivers: dict[str, SimDriver] = {}
         for sensor in profile.sensors:
             if sensor.modality in ("rgb", "thermal", "radar"):
                 cls = BrokenRadar if broken_radar and sensor.modality == "radar" else SimDriver
-                self.drivers[sensor.name] = cls(sensor.model_copy(update={"render_in_thread": "never"}),
-                                                self.clock, context)
-        config = profile.controller.model_copy(update={
-            "policy": policy, "system_probe": False, "min_dwell_s": 0.0, "save_every": 1000})
+                self.drivers[sensor.name] = cls(
+                    sensor.model_copy(update={"render_in_thread": "never"}), self.clock, context
+                )
+        config = profile.controller.model_copy(
+            update={"policy": policy, "system_probe": False, "min_dwell_s": 0.0, "save_every": 1000}
+        )
         self.stage = ControllerStage(config, profile, self.drivers, self.clock, tmp_path)
         self.decisions: list[Decision] = []
         self.hints = 0
@@ -138,3 +142,10 @@ async def test_close_before_run_does_not_clobber_a_saved_table(tmp_path: Path, p
     rig = Rig(tmp_path, policy)
     await rig.stage.close()
     assert list(tmp_path.iterdir()) == []
+
+
+async def test_exploit_with_an_empty_state_dir_uses_the_shipped_table(tmp_path: Path) -> None:
+    rig = Rig(tmp_path, "exploit")
+    await rig.run(1.5)
+    assert rig.stage.controller.table.updates > 0  # learned offline by `respecd train-policy`
+    assert not list(tmp_path.glob("*.npz"))  # exploit never writes a table

@@ -116,7 +116,7 @@ def test_bench_without_table_is_a_clear_error(profile_path: Path, tmp_path: Path
 
 
 def test_shipped_fallback_loads_read_only(trained: Path, profile_path: Path) -> None:
-    from respecd.experiment.shipped import load_shipped
+    from respecd.control.shipped import load_shipped
 
     mine = controller_for(load_profile(profile_path), "exploit")
     assert load_shipped(mine.table, mine.layout(), trained)

@@ -26,6 +26,7 @@ from respecd.control.controller import Controller
 from respecd.control.features import FeatureExtractor, Window
 from respecd.control.persist import load_into, save_table, table_path
 from respecd.control.probe import SystemProbe, SystemSample
+from respecd.control.shipped import load_shipped
 from respecd.drivers.base import Capabilities, Driver
 from respecd.errors import DriverError
 from respecd.messages import Decision, Percept, SensorConfig
@@ -102,6 +103,8 @@ class ControllerStage:
         if table is not None:
             layout = self.controller.layout()
             loaded = await asyncio.to_thread(load_into, self.table_path, table, layout)
+            if not loaded and self.config.policy == "exploit":  # nothing learned here yet: the shipped table
+                loaded = await asyncio.to_thread(load_shipped, table, layout)
             self._saved_updates = table.updates
             if not loaded and self.config.policy == "exploit":
                 log.warning("exploit_without_table", path=str(self.table_path))
