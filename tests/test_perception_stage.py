@@ -27,6 +27,8 @@ def _one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
 SYNC = SyncStats(rate_hz=10.0, jitter_ms=0.0, stale_ratio=0.0, health=Health.GOOD)
 
 
@@ -84,3 +86,23 @@ def test_stage_with_bad_weights_fails_at_construction(tmp_path) -> None:
     bad.write_bytes(b"not torch")
     with pytest.raises(ConfigError, match="bad.pt"):
         PerceptionStage(PerceptionConfig(weights=str(bad)), profile=None, clock=ManualClock())
+
+
+async def test_bundles_without_a_new_detector_input_are_skipped() -> None:
+    """An IMU keeps the synchronizer at 30 Hz; the detector runs only on new RGB/aux frames."""
+    config = PerceptionConfig(model=TINY, score_threshold=0.0, max_detections=5)
+    detector = RecordingDetector(FusionNet(TINY), config)
+    stage = PerceptionStage(config, profile=None, clock=ManualClock(), detector=detector)
+    bundles: DropOldestQueue[Bundle] = DropOldestQueue(8)
+    percepts = DropOldestQueue(8)
+    first = _bundle(0.0, 0)
+    imu = Frame("imu", 0.033, 1, np.zeros(6, np.float32))
+    repeat = Bundle(t=0.033, frames={**first.frames, "imu": imu}, sync=SYNC, seq=1)  # same RGB and thermal
+    for bundle in (first, repeat, _bundle(0.066, 2)):
+        bundles.put(bundle)
+    task = asyncio.create_task(stage.run(bundles, percepts), name="perception")
+    received = [await asyncio.wait_for(percepts.get(), timeout=30) for _ in range(2)]
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+    assert [p.bundle.seq for p in received] == [0, 2]
+    assert len(detector.calls) == 2 and stage.skipped == 1

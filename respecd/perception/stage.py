@@ -54,6 +54,9 @@ class PerceptionStage:
         self._executor: ThreadPoolExecutor | None = None
         self._attribution_requested = False
         self._last_attribution_t: float | None = None
+        self._inputs = frozenset({"rgb", *config.model.aux_modalities})
+        self._last_inputs: dict[str, tuple[int, float]] = {}
+        self.skipped = 0  # bundles whose detector inputs were all seen already
 
     def request_attribution(self) -> None:
         """Attribute the next bundle, whatever the cadence says."""
@@ -66,6 +69,9 @@ class PerceptionStage:
         try:
             while True:
                 bundle = await bundles.get()
+                if not self._has_new_input(bundle):
+                    self.skipped += 1
+                    continue
                 attribute = self._attribution_due(bundle.t)
                 frames = dict(bundle.frames)
                 percept = await loop.run_in_executor(self._executor, self._detector.infer, frames, attribute)
@@ -97,6 +103,19 @@ class PerceptionStage:
 
         torch.set_num_threads(self.config.torch_threads)
         return FusionDetector.load(self.config, calibration_from_profile(self.profile))
+
+    def _has_new_input(self, bundle: Bundle) -> bool:
+        """True when a detector input (RGB or an aux modality) brings a frame not yet seen.
+
+        The synchronizer ticks at the fastest sensor (an IMU keeps it at 30 Hz); running
+        the detector again on the same RGB/thermal/radar frames would cost a full inference
+        for an identical answer, so lowering those sensors' rates really lowers compute.
+        """
+        seen = {m: (f.seq, f.t) for m, f in bundle.frames.items() if m in self._inputs}
+        if seen == self._last_inputs:
+            return False
+        self._last_inputs = seen
+        return True
 
     def _attribution_due(self, t: float) -> bool:
         due = (
