@@ -25,9 +25,9 @@ from typing import Any, Protocol, TypeVar
 import numpy as np
 import structlog
 
-from respecd.drivers.base import Driver
+from respecd.drivers.base import Capabilities, Driver, clamp_request
 from respecd.errors import DriverError, DriverIOError, DriverTimeoutError, DriverUnavailableError
-from respecd.messages import Frame
+from respecd.messages import Frame, SensorConfig
 
 log = structlog.get_logger(__name__)
 
@@ -337,6 +337,14 @@ class ThreadedDriver(Driver):
             self.health.drops += self._handoff.dropped - self._seen_drops
             self._seen_drops = self._handoff.dropped
         return frame
+
+    async def apply_through(self, source: Any, caps: Capabilities, request: SensorConfig) -> SensorConfig:
+        """Clamp ``request`` and, once streaming, let ``source.reconfigure`` apply it in the worker."""
+        applied = clamp_request(caps, request)
+        if self.worker is not None and source is not None:
+            applied = await self.in_worker(lambda: source.reconfigure(applied))
+        self.applied = applied
+        return applied
 
     async def in_worker(self, fn: Callable[[], T]) -> T:
         """Run ``fn`` in the worker thread (between reads); DriverTimeoutError if it hangs."""

@@ -275,9 +275,4 @@ class RealSenseDriver(ThreadedDriver):
 
     async def apply(self, request: SensorConfig) -> SensorConfig:
         self.request = request
-        applied = clamp_request(self._caps, request)
-        source = self._source
-        if self.worker is not None and source is not None:
-            applied = await self.in_worker(lambda: source.reconfigure(applied))
-        self.applied = applied
-        return applied
+        return await self.apply_through(self._source, self._caps, request)
