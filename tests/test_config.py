@@ -49,6 +49,16 @@ def test_embedded_default_profile_loads_from_the_package():
     assert load_profile("builtin:sim-rover").name == "sim-rover"
 
 
+def test_paper_reward_ablation_differs_from_sim_rover_only_in_the_reward():
+    # docs/RESULTS.md compares the two: any other drift would make that comparison unfair
+    base = load_profile("builtin:sim-rover").model_dump()
+    ablation = load_profile(REPO / "configs" / "sim-rover-paper-reward.yaml").model_dump()
+    base_reward, ablation_reward = base["controller"].pop("reward"), ablation["controller"].pop("reward")
+    assert ablation.pop("name") == "sim-rover-paper-reward" and base.pop("name") == "sim-rover"
+    assert ablation == base
+    assert ablation_reward == {**base_reward, "compute_w": 0.0, "staleness": (0.0, 0.0, 0.0)}
+
+
 def test_every_problem_has_file_line_path_and_expectation(tmp_path):
     assert problems_of(tmp_path, BAD) == [
         "P:6: sensors.0.rate_hz: Input should be less than or equal to 30 (got 45)",

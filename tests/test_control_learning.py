@@ -9,7 +9,7 @@ from respecd.control.actions import ActionSpace, Slot
 from respecd.control.config import ControllerConfig, Learning, RewardWeights, Thresholds
 from respecd.control.controller import Controller
 from respecd.control.qlearning import QTable
-from respecd.control.reward import reward_terms, sensor_power
+from respecd.control.reward import reward_terms, sensing_delay, sensor_power
 from respecd.control.state import Observation, StateSpace
 from respecd.drivers.base import SensorPower
 from respecd.messages import SensorConfig
@@ -164,3 +164,57 @@ def test_exploit_acts_on_tried_actions_and_holds_where_nothing_was_learned() -> 
         picks[light] = (decision.action, controller.position)
     assert picks[0.1][0] == 0 and picks[0.8][0] == 0  # never the untried optimistic action
     assert picks[0.5][1] == picks[0.8][1]  # dim: never learned in, the configuration is held
+
+
+def test_detector_compute_enters_the_modelled_power_but_not_measured_rails() -> None:
+    # The rails see the accelerator; the per-sensor model does not, so without rails the
+    # controller adds compute_w x the detector's busy share.
+    config = ControllerConfig(factors=("illumination",), contribution="none", min_dwell_s=0.0,
+                              reward=RewardWeights(compute_w=8.0), learning=Learning(init="zero"))
+    slot = Slot("cam", "rgb", ((640, 360),), (5.0,))
+    powers = {"cam": SensorPower(static_w=1.0, per_hz_w={"default": 0.0})}
+    controller = Controller(config, ActionSpace((slot,), "product"), StateSpace(config.factors, Thresholds()), powers)
+    applied = {"cam": SensorConfig("rgb", rate_hz=5.0, resolution=(640, 360))}
+    modelled = controller.step(Observation(t=0.0, n_percepts=5, busy=0.25), applied)
+    assert modelled.terms["power_w"] == pytest.approx(1.0 + 8.0 * 0.25)
+    idle = controller.step(Observation(t=1.0, n_percepts=0, busy=0.0), applied)
+    assert idle.terms["power_w"] == pytest.approx(1.0)
+    rails = controller.step(Observation(t=2.0, n_percepts=5, busy=0.25, power_w=6.5), applied)
+    assert rails.terms["power_w"] == pytest.approx(6.5)
+
+
+def test_sensing_delay_weights_each_input_by_its_contribution() -> None:
+    rgb = SensorConfig("rgb", rate_hz=1.0, resolution=(640, 360))
+    thermal = SensorConfig("thermal", rate_hz=10.0, resolution=(160, 120))
+    imu = SensorConfig("imu", rate_hz=200.0)
+    off = SensorConfig("radar", enabled=False, rate_hz=30.0)
+    # half a frame period each: rgb 0.5 s, thermal 0.05 s; the IMU and a disabled radar do not count
+    delay = sensing_delay([rgb, thermal, imu, off], {"rgb": 0.2, "thermal": 0.8})
+    assert delay == pytest.approx(0.2 * 0.5 + 0.8 * 0.05)
+    assert sensing_delay([rgb, thermal], None) == pytest.approx((0.5 + 0.05) / 2)  # before any attribution
+    assert sensing_delay([rgb, thermal], {"radar": 1.0}) == pytest.approx((0.5 + 0.05) / 2)
+    assert sensing_delay([imu], {"rgb": 1.0}) == 0.0
+
+
+def test_staleness_costs_by_motion_bin() -> None:
+    w = RewardWeights(staleness=(0.0, 1.0, 3.0))
+    base = {"conf_prev": 0.5, "conf_now": 0.5, "power_w": 0.0, "latency_s": 0.0, "switched": False, "delay_s": 0.2}
+    assert reward_terms(w, **base, motion_bin=0)["staleness"] == 0.0
+    assert reward_terms(w, **base, motion_bin=1)["staleness"] == pytest.approx(-0.2)
+    fast = reward_terms(w, **base, motion_bin=2)
+    assert fast["staleness"] == pytest.approx(-0.6) and fast["reward"] == pytest.approx(-0.6)
+    assert fast["delay_s"] == 0.2
+    with pytest.raises(ValueError, match="staleness"):
+        RewardWeights(staleness=(0.0, -1.0, 1.0))
+
+
+def test_controller_charges_a_slow_camera_only_when_the_scene_moves() -> None:
+    config = ControllerConfig(factors=("motion",), contribution="none", min_dwell_s=0.0,
+                              reward=RewardWeights(staleness=(0.0, 2.0, 4.0)), learning=Learning(init="zero"))
+    slot = Slot("cam", "rgb", ((640, 360),), (1.0,))
+    controller = Controller(config, ActionSpace((slot,), "product"), StateSpace(config.factors, Thresholds()))
+    applied = {"cam": SensorConfig("rgb", rate_hz=1.0, resolution=(640, 360))}
+    still = controller.step(Observation(t=0.0, n_percepts=1, motion_image=3.5), applied)
+    fast = controller.step(Observation(t=1.0, n_percepts=1, motion_image=20.0), applied)
+    assert still.terms["staleness"] == 0.0
+    assert fast.terms["staleness"] == pytest.approx(-4.0 * 0.5)

@@ -150,8 +150,9 @@ def test_window_averages_prunes_and_keeps_last_scene_values() -> None:
     assert obs.radar_points == 10
     assert obs.sync == pytest.approx(1.0)
     assert obs.load == pytest.approx(0.5)  # latency 0.1 s of a 0.2 s budget beats CPU 0.3
+    assert obs.busy == pytest.approx(0.2)  # 0.05 + 0.15 s of inference in a 1 s window
     later = window.observe(2.5, cpu=0.9)  # both samples aged out
-    assert later.n_percepts == 0 and later.conf_agg == 0.0
+    assert later.n_percepts == 0 and later.conf_agg == 0.0 and later.busy == 0.0
     assert later.illumination == pytest.approx(0.2)  # last known light, not "unknown"
     assert later.contributions == {"rgb": 0.2, "thermal": 0.8}
     assert later.load == pytest.approx(0.9)

@@ -13,6 +13,7 @@ import yaml
 from respecd.cli import main as cli_main
 from respecd.config import load_profile
 from respecd.control.persist import read_table, save_table
+from respecd.control.state import bin3
 from respecd.errors import InputError
 from respecd.experiment import latency as lat
 from respecd.experiment.cache import OutcomeCache
@@ -137,3 +138,23 @@ def test_conservative_fill_prefers_tried_actions_and_keep() -> None:
     assert changed == 3 + 3 + 4
     assert table.greedy(0) == 2 and table.greedy(1) == 1  # the tried action, not an untried 1.0
     assert table.greedy(2) == 0  # a state never visited holds the configuration
+
+
+def test_rollout_charges_the_detector_it_runs(profile_path: Path) -> None:
+    # The reward sees what the benchmark reports: P = sensor model + compute_w x busy share,
+    # and the window's latency is the detector time over the inferences that ran.
+    profile = load_profile(profile_path)
+    detector = load_detector(profile, random_init=True)
+    rollout = Rollout(profile, make_evaluator(detector, profile, use_cache=False), {})
+    world = rollout.world(Piece("good-light-static", 0, 2.0))
+    rollout.latency = lat.measure(detector, lat.sim_frames(world, rollout.evaluator.inputs), [(640, 360)], 1)
+    controller = controller_for(profile, "static")
+    records = rollout.run(controller, [Piece("good-light-moving", 0, 3.0)])
+    compute_w = profile.controller.reward.compute_w
+    for record in records:
+        terms, busy = record.decision.terms, record.compute_ms / 1000.0
+        assert terms["power_w"] == pytest.approx(record.energy_j / rollout.period + compute_w * busy)
+        assert terms["latency_s"] * 30 == pytest.approx(busy)  # static: 30 inferences per 1 s window
+        load = max(min(busy, 1.0), terms["latency_s"] / controller.config.latency_budget_s)
+        expected = bin3(load, controller.config.thresholds.load)
+        assert controller.states.names(record.decision.state)["load"] == ("low", "medium", "high")[expected]

@@ -63,19 +63,43 @@ class Thresholds(StrictModel):
 
 
 class RewardWeights(StrictModel):
-    """r = alpha*clip(dConfAgg, -kappa, kappa) - beta*P - gamma*L - delta*[switch]."""
+    """r = alpha*clip(dConfAgg, -kappa, kappa) - beta*P - gamma*L - staleness[motion]*D - delta*[switch].
+
+    P includes the detector's compute; D is the contribution-weighted sensing delay.
+    """
 
     alpha: float = Field(4.0, ge=0, le=1000, description="Weight of the ConfAgg change (quality gain).")
     kappa: float = Field(0.25, gt=0, le=1, description="Clip of the ConfAgg change per decision.")
     beta: float = Field(0.05, ge=0, le=1000, description="Weight of power, per watt.")
+    compute_w: float = Field(
+        7.0,
+        ge=0,
+        le=1000,
+        description="Watts the detector's accelerator draws while busy (Jetson Orin Nano GPU about 7 W). Without "
+        "power rails P adds compute_w x the detector's busy share (inference seconds per second); with rails the "
+        "measured board power already holds it.",
+    )
     gamma: float = Field(1.0, ge=0, le=1000, description="Weight of latency, per second of mean perception latency.")
     delta: float = Field(0.05, ge=0, le=1000, description="Penalty of a configuration switch (the sensors re-arm).")
+    staleness: tuple[float, float, float] = Field(
+        (0.0, 2.0, 4.0),
+        description="Weight per second of sensing delay, by motion bin still / slow / fast. Sensing delay is how "
+        "old a scene change is, on average, when its first frame is taken (half the frame period), averaged over "
+        "the detector's inputs by their contribution: a slow sensor costs in proportion to how fast the scene "
+        "moves and how much the detector relies on it. (0, 0, 0) is the paper's reward.",
+    )
     confidence_level: float = Field(
         0.0,
         ge=0,
         le=1000,
         description="Weight of the ConfAgg level itself (0 = the paper's reward, which rewards only its change).",
     )
+
+    @model_validator(mode="after")
+    def _staleness_non_negative(self) -> RewardWeights:
+        if min(self.staleness) < 0 or max(self.staleness) > 1000:
+            raise ValueError(f"staleness weights must lie in 0..1000, got {list(self.staleness)}")
+        return self
 
 
 class Learning(StrictModel):

@@ -18,8 +18,8 @@ from respecd.control.actions import ActionSpace, Position, build_slots
 from respecd.control.baselines import heuristic_position, static_position
 from respecd.control.config import ControllerConfig
 from respecd.control.qlearning import QTable
-from respecd.control.reward import reward_terms, sensor_power
-from respecd.control.state import Observation, StateSpace
+from respecd.control.reward import compute_power, reward_terms, sensing_delay, sensor_power
+from respecd.control.state import Observation, StateSpace, motion_bin
 from respecd.drivers.base import Capabilities, SensorPower
 from respecd.messages import Decision, SensorConfig
 
@@ -95,8 +95,14 @@ class Controller:
             self.position = self._resync(applied)
         bins = self.states.bins(obs)
         state = self.states.index(bins)
-        power = obs.power_w if obs.power_w is not None else self._model_power(applied)
-        terms = reward_terms(self.config.reward, self._prev_conf, obs.conf_agg, power, obs.latency_s, self._switched)
+        power = obs.power_w
+        if power is None:  # no rails: the sensors' model plus the detector's compute
+            power = self._model_power(applied) + compute_power(obs.busy, self.config.reward.compute_w)
+        running = applied.values() if applied else self.space.requests(self.position)
+        delay = sensing_delay(running, obs.contributions)
+        motion = motion_bin(obs, self.states.thresholds)
+        terms = reward_terms(self.config.reward, self._prev_conf, obs.conf_agg, power, obs.latency_s, self._switched,
+                             delay, motion)
         reward = terms["reward"]
         if self.policy == "learn" and self.table is not None and self._prev_state is not None:
             terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state)

@@ -120,6 +120,7 @@ class Window:
             self._samples.popleft()
         s = list(self._samples)
         latency = _mean([x.latency_s for x in s]) or 0.0
+        busy = sum(x.latency_s for x in s) / self.window_s
         load = max(cpu or 0.0, gpu or 0.0, min(latency / self.latency_budget_s, 1.0))
         levels = [x.sync_level for x in s if x.sync_level is not None]
         return Observation(
@@ -131,6 +132,7 @@ class Window:
             radar_points=self._scene("radar_points", [x.radar_points for x in s if x.radar_points is not None]),
             load=load,
             latency_s=latency,
+            busy=busy,
             sync=_mean(levels) if levels else 0.0,  # type: ignore[arg-type]
             conf_agg=_mean([x.conf_agg for x in s]) or 0.0,
             contributions=self._contributions(s),

@@ -1,11 +1,19 @@
-"""The reward: r = α·clip(ConfAgg_t − ConfAgg_{t−1}, −κ, κ) − β·P_t − γ·L_t − δ·[switch].
+"""The reward: r = α·clip(ConfAgg_t − ConfAgg_{t−1}, −κ, κ) − β·P_t − γ·L_t − σ_m·D_t − δ·[switch].
 
 Every term is returned so that each decision's log line shows why it was good or bad.
 P is the board power from the rails when readable, else the profile's per-sensor power
-model over what the drivers really applied. The switch indicator is "the configuration
+model over what the drivers really applied plus the detector's compute power (``compute_w``
+× its busy share): on the rover the rails see the GPU, so a model without it would let the
+agent keep the detector running flat out for free. The switch indicator is "the configuration
 changed": in product mode that is exactly [a_t ≠ a_{t−1}]; in moves mode repeating "thermal
 rate up" is a switch while "keep" is not, which is what costs the sensors a re-arm.
 An optional ``confidence_level`` term (default 0, the paper's reward) adds the ConfAgg level.
+
+D is the sensing delay: the mean age of a scene change when its first frame is taken, half a
+frame period, averaged over the detector's inputs by their contribution. Its weight σ_m
+depends on the motion bin: ConfAgg cannot see staleness (a detector is as sure of where a
+person *was* as of where they are), so without this term nothing pays for a fast rate and
+the compute term alone drives every sensor to 1 Hz, however fast the scene moves.
 """
 
 from __future__ import annotations
@@ -16,10 +24,32 @@ from respecd.control.config import RewardWeights
 from respecd.drivers.base import SensorPower
 from respecd.messages import SensorConfig
 
+DETECTOR_MODALITIES = ("rgb", "thermal", "radar", "depth")  # inputs whose staleness the detector inherits
+
 
 def sensor_power(configs: Iterable[tuple[str, SensorConfig]], models: Mapping[str, SensorPower]) -> float:
     """Watts of the sensors by the profile's power model; (sensor name, applied config) pairs."""
     return sum(models[name].watts(config) for name, config in configs if name in models)
+
+
+def compute_power(busy: float, compute_w: float) -> float:
+    """Watts the detector draws: ``busy`` is inference seconds per second (may exceed 1 when
+    the configuration asks for more inferences than one accelerator can run)."""
+    return compute_w * max(busy, 0.0)
+
+
+def sensing_delay(configs: Iterable[SensorConfig], contributions: Mapping[str, float] | None) -> float:
+    """Half the frame period of each running detector input, weighted by its contribution
+    (equally while no attribution has run); 0 when no input runs."""
+    periods = {c.modality: 0.5 / c.rate_hz for c in configs
+               if c.enabled and c.rate_hz > 0 and c.modality in DETECTOR_MODALITIES}
+    if not periods:
+        return 0.0
+    weights = {m: max((contributions or {}).get(m, 0.0), 0.0) for m in periods}
+    total = sum(weights.values())
+    if total <= 0.0:
+        weights, total = dict.fromkeys(periods, 1.0), float(len(periods))
+    return sum(periods[m] * w for m, w in weights.items()) / total
 
 
 def reward_terms(
@@ -29,8 +59,11 @@ def reward_terms(
     power_w: float,
     latency_s: float,
     switched: bool,
+    delay_s: float = 0.0,
+    motion_bin: int = 0,
 ) -> dict[str, float]:
-    """Each weighted term and their sum under ``reward`` (the first step has no quality change)."""
+    """Each weighted term and their sum under ``reward`` (the first step has no quality change).
+    ``delay_s``: the sensing delay; ``motion_bin``: 0 still, 1 slow, 2 fast."""
     change = 0.0 if conf_prev is None else conf_now - conf_prev
     quality = weights.alpha * min(max(change, -weights.kappa), weights.kappa)
     terms = {
@@ -38,10 +71,12 @@ def reward_terms(
         "level": weights.confidence_level * conf_now,
         "power": -weights.beta * power_w,
         "latency": -weights.gamma * latency_s,
+        "staleness": -weights.staleness[motion_bin] * delay_s,
         "switch": -weights.delta if switched else 0.0,
     }
     terms["reward"] = sum(terms.values())
     terms["power_w"] = power_w
     terms["latency_s"] = latency_s
+    terms["delay_s"] = delay_s
     terms["conf_agg"] = conf_now
     return terms

@@ -40,6 +40,14 @@ def bin3(value: float, edges: tuple[float, float]) -> int:
     return 1 if value < high else 2
 
 
+def motion_bin(obs: Observation, thresholds: Thresholds) -> int:
+    """Still 0, slow 1, fast 2: the larger of the image and IMU bins (a still robot watching
+    a moving target is still "moving"); the reward needs it even when the state omits it."""
+    image = 0 if obs.motion_image is None else bin3(obs.motion_image, thresholds.motion_image)
+    imu = 0 if obs.motion_imu is None else bin3(obs.motion_imu, thresholds.motion_imu_rad_s)
+    return max(image, imu)
+
+
 @dataclass(frozen=True, slots=True)
 class Observation:
     """Window averages the state is computed from (None: no such signal in the window)."""
@@ -52,6 +60,7 @@ class Observation:
     radar_points: float | None = None  # mean points per radar frame
     load: float = 0.0  # max(CPU share, GPU share, latency / budget), 0..1
     latency_s: float = 0.0  # mean perception latency
+    busy: float = 0.0  # detector seconds per second (sum of inference latencies / window)
     sync: float = 0.0  # mean synchronizer health, good=0 fair=1 poor=2
     conf_agg: float = 0.0  # mean ConfAgg
     contributions: Mapping[str, float] | None = None  # mean scene score per modality
@@ -107,11 +116,7 @@ class StateSpace:
             # unknown light (no RGB frame yet) is the middle bin, not "dark"
             return lambda o: 1 if o.illumination is None else bin3(o.illumination, th.illumination)
         if factor == "motion":
-            # a still robot watching a moving target is still "moving": take the larger bin
-            return lambda o: max(
-                0 if o.motion_image is None else bin3(o.motion_image, th.motion_image),
-                0 if o.motion_imu is None else bin3(o.motion_imu, th.motion_imu_rad_s),
-            )
+            return lambda o: motion_bin(o, th)
         if factor == "radar_density":
             return lambda o: 0 if o.radar_points is None else bin3(o.radar_points, th.radar_points)
         if factor == "load":

@@ -9,7 +9,9 @@ the simulated sensors' clamping. Per decision window (``decision_period_s``):
    instants for every policy, so the comparison is paired); at each, the detector's
    outcome on the frames the current configuration delivers (cached, see ``outcomes.py``);
    the first instant of the window is attributed, as the daemon attributes once per decision;
-2. the window's observation -> ``Controller.step`` -> the new configuration is applied;
+2. the window's observation -> ``Controller.step`` -> the new configuration is applied; the
+   observation's detector busy share is the window's modelled compute (step 3), since the
+   window holds only the scored instants, not every inference;
 3. the window's figures under the configuration that was active during it: detections vs
    ground truth at the instant (a stale frame scores worse on a moving target), compute
    (measured forward time x inference rate + attribution once per window), energy from the
@@ -17,14 +19,17 @@ the simulated sensors' clamping. Per decision window (``decision_period_s``):
 
 The detector runs once per new detector input, so its rate is the fastest detector-input
 sensor (RGB, thermal, radar; depth when the network reads it), capped by ``sync.max_rate_hz``.
-Load is latency / ``latency_budget_s`` (``system_probe`` off, as for deterministic replay).
+Load is the larger of the detector's busy share (what the Jetson's GPU probe reads; capped at
+1) and latency / ``latency_budget_s``, with the latency the daemon's window would average:
+the window's detector time over its inferences, most plain forward passes, one attributed.
+The host's CPU is not probed (``system_probe`` off, as for deterministic replay).
 """
 
 from __future__ import annotations
 
 import zlib
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -129,7 +134,11 @@ class Rollout:
                 images, points = self._observe(run, k, self._by_modality(applied))
                 now = offset + (k + 1) * self.period
                 position = controller.position
-                decision = controller.step(window.observe(now), applied)
+                # the window holds only the scored instants: the detector's busy share comes from its
+                # real rate, and is the load a GPU probe would read (capped at one accelerator)
+                busy = self.compute_s(applied) / self.period
+                obs = replace(window.observe(now, gpu=min(busy, 1.0)), busy=busy)
+                decision = controller.step(obs, applied)
                 records.append(self._record(piece.scenario, now, position, decision, applied, images, points))
                 applied = self._configure(applied, controller, decision.configs)
                 if on_window is not None:
@@ -160,9 +169,8 @@ class Rollout:
         out = self.evaluator.outcome(world, configs, t, attribute, slot)
         contributions = run.scores.update(offset + t, out.contributions) if attribute else None
         res = configs["rgb"].resolution
-        lat = self.latency[res]
         imu = self.evaluator.imu(world, t)
-        run.window.add(Sample(offset + t, out.conf_agg, lat.attribution_s if attribute else lat.forward_s,
+        run.window.add(Sample(offset + t, out.conf_agg, self.mean_latency_s(configs),
                           out.luminance, out.motion, float(np.linalg.norm(imu[3:6])), out.radar_points, 0,
                           contributions))
         boxes, ignore = self.evaluator.truth(world, t, res)
@@ -175,14 +183,27 @@ class Rollout:
 
     def _record(self, scenario: str, now: float, position: Position, decision: Decision,
                 applied: dict[str, SensorConfig], images: list[ImageResult], points: float) -> WindowRecord:
-        by_modality = self._by_modality(applied)
-        lat = self.latency[by_modality["rgb"].resolution]
-        # one attribution per window replaces one plain inference: its extra time is added once
-        compute_s = lat.forward_s * self.detector_rate(by_modality) * self.period + (lat.attribution_s - lat.forward_s)
+        compute_s = self.compute_s(applied)
         energy = sum(self.powers[n].watts(c) for n, c in applied.items()) * self.period
         bandwidth = sum(frame_bytes(c, points) * c.rate_hz for c in applied.values() if c.enabled)
         return WindowRecord(scenario, now, position, decision, 1000.0 * compute_s / self.period, energy, bandwidth,
                             images)
+
+    def compute_s(self, applied: dict[str, SensorConfig]) -> float:
+        """Detector seconds in one decision window under ``applied``: a forward pass per new
+        input frame, and one of them attributed (its extra time added once)."""
+        return self._window_compute(self._by_modality(applied))[0]
+
+    def mean_latency_s(self, by_modality: dict[str, SensorConfig]) -> float:
+        """The mean perception latency the daemon's window would hold: the window's detector
+        time over its inferences (most plain, one attributed)."""
+        compute_s, inferences = self._window_compute(by_modality)
+        return compute_s / inferences
+
+    def _window_compute(self, by_modality: dict[str, SensorConfig]) -> tuple[float, float]:
+        lat = self.latency[by_modality["rgb"].resolution]
+        inferences = max(self.detector_rate(by_modality) * self.period, 1.0)
+        return lat.forward_s * inferences + (lat.attribution_s - lat.forward_s), inferences
 
     def _configure(self, applied: dict[str, SensorConfig], controller: Controller,
                    requests: tuple[SensorConfig, ...]) -> dict[str, SensorConfig]:
