@@ -218,3 +218,11 @@ def test_controller_charges_a_slow_camera_only_when_the_scene_moves() -> None:
     fast = controller.step(Observation(t=1.0, n_percepts=1, motion_image=20.0), applied)
     assert still.terms["staleness"] == 0.0
     assert fast.terms["staleness"] == pytest.approx(-4.0 * 0.5)
+
+
+def test_reward_terms_do_not_shadow_log_record_keys() -> None:
+    # every term goes into the `decision` log line as a keyword: a term named like one of
+    # structlog's own keys would be silently overwritten there
+    terms = reward_terms(RewardWeights(confidence_level=1.0), 0.2, 0.5, 3.0, 0.1, True, 0.2, 2)
+    assert not set(terms) & {"event", "level", "timestamp", "logger", "state", "action", "epsilon"}
+    assert terms["conf_level"] == pytest.approx(0.5)

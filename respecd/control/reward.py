@@ -68,7 +68,7 @@ def reward_terms(
     quality = weights.alpha * min(max(change, -weights.kappa), weights.kappa)
     terms = {
         "quality": quality,
-        "level": weights.confidence_level * conf_now,
+        "conf_level": weights.confidence_level * conf_now,
         "power": -weights.beta * power_w,
         "latency": -weights.gamma * latency_s,
         "staleness": -weights.staleness[motion_bin] * delay_s,
