@@ -1,4 +1,4 @@
-"""Shared fixtures: paths to shared data, and a guard against leaked threads."""
+"""Shared fixtures: paths to shared data, one torch thread, and a guard against leaked threads."""
 
 from __future__ import annotations
 
@@ -16,6 +16,18 @@ def shared_data() -> Path:
     if not SHARED_DATA.is_dir():
         pytest.skip(f"shared captures not found at {SHARED_DATA}")
     return SHARED_DATA
+
+
+@pytest.fixture
+def one_torch_thread():
+    """One intra-op torch thread (perception tests: on a shared 2-core runner, two
+    spin-waiting threads run slower)."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 
 
 @pytest.fixture(autouse=True)

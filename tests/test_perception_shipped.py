@@ -9,21 +9,13 @@ from importlib import resources
 
 import numpy as np
 import pytest
-import torch
 
 from respecd.messages import Frame
 from respecd.perception.config import PerceptionConfig
 from respecd.perception.detector import FusionDetector
 from respecd.perception.metrics import iou_matrix
 
-
-@pytest.fixture(autouse=True)
-def _one_torch_thread():
-    """One intra-op thread: on a shared 2-core runner, two spin-waiting threads run slower."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")
