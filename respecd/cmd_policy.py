@@ -46,7 +46,8 @@ def render(meta: dict[str, Any], q: np.ndarray, visits: np.ndarray, limit: int =
     bin_names: list[list[str]] = layout["states"]["bins"]
     actions: list[str] = layout["actions"]["names"]
     dims = [len(b) for b in bin_names]
-    state_visits = visits.sum(axis=1)
+    blocks = layout["actions"].get("blocks")
+    state_visits = visits.sum(axis=1) // (len(blocks) if blocks else 1)  # updates: each touches every block
     visited = np.flatnonzero(state_visits)
     n_states, n_actions = q.shape
     lines = [
@@ -58,9 +59,7 @@ def render(meta: dict[str, Any], q: np.ndarray, visits: np.ndarray, limit: int =
     ]
     if visited.size == 0:
         return [*lines, "no state visited yet: nothing learned"]
-    # what exploit does: the best *tried* action (an untried one only has its initial value)
-    best = np.where(visits[visited] > 0, q[visited], -np.inf).argmax(axis=1)
-    best_q = q[visited, best]
+    best_names, best_q = _best_tried(q[visited], visits[visited], actions, blocks)
     order = {"visits": np.argsort(-state_visits[visited], kind="stable"),
              "q": np.argsort(-best_q, kind="stable"),
              "state": np.arange(visited.size)}[sort]
@@ -70,7 +69,7 @@ def render(meta: dict[str, Any], q: np.ndarray, visits: np.ndarray, limit: int =
         bins = _unindex(int(visited[i]), dims)
         names = [bin_names[f][b] for f, b in enumerate(bins)]
         tried = int((visits[visited[i]] > 0).sum())
-        rows.append([*names, actions[best[i]], f"{best_q[i]:.3f}", str(int(state_visits[visited[i]])),
+        rows.append([*names, best_names[i], f"{best_q[i]:.3f}", str(int(state_visits[visited[i]])),
                      f"{tried}/{n_actions}"])
     header = [*factors, "best action", "Q", "visits", "tried"]
     widths = [max(len(h), *(len(r[c]) for r in rows)) for c, h in enumerate(header)]
@@ -79,3 +78,18 @@ def render(meta: dict[str, Any], q: np.ndarray, visits: np.ndarray, limit: int =
     if len(shown) < visited.size:
         lines.append(f"({len(shown)} of {visited.size} visited states shown, sorted by {sort}; --limit 0 shows all)")
     return lines
+
+
+def _best_tried(q: np.ndarray, visits: np.ndarray, names: list[str],
+                blocks: list[int] | None) -> tuple[list[str], np.ndarray]:
+    """What exploit does per row: the best *tried* action (an untried one only has its initial
+    value); in a factored table the best tried cell of each block, Q their mean."""
+    masked = np.where(visits > 0, q, -np.inf)
+    spans = [(0, q.shape[1])]
+    if blocks:
+        ends = np.cumsum(blocks)
+        spans = list(zip(ends - np.asarray(blocks), ends, strict=True))
+    picks = [masked[:, a:b].argmax(axis=1) + a for a, b in spans]
+    labels = [" ".join(names[p[i]] for p in picks) for i in range(q.shape[0])]
+    values = np.mean([q[np.arange(q.shape[0]), p] for p in picks], axis=0)
+    return labels, values

@@ -139,3 +139,20 @@ async def test_mapping_through_the_real_flir_one_driver_clamps_and_reports() -> 
     assert request.rate_hz == 30.0 and applied.rate_hz == 9.0
     assert any("9 Hz" in note for note in applied.notes)
     assert blind.nearest({"flir": applied}) == ((1, 2),)  # what the controller then believes it runs
+
+
+def test_factored_space_names_the_product_but_holds_one_block_per_sensor() -> None:
+    config = ActionSpaceConfig(mode="factored", rate_levels_hz=(1.0, 10.0))
+    space = ActionSpace(build_slots(config, _sensors()), "factored", max_actions=16)
+    assert space.n == (3 * 2) * (2 * 2) * (2 * 2)  # action ids: whole positions, as in product mode
+    assert space.blocks == (6, 4, 4) and space.columns == 14  # table columns: a block of cells per sensor
+    names = space.descriptions()
+    assert len(names) == 14 and names[:2] == ["cam 640x360@1Hz", "cam 640x360@10Hz"]
+    assert names[6:] == ["flir 160x120@1Hz", "flir 160x120@10Hz", "flir 320x240@1Hz", "flir 320x240@10Hz",
+                         "radar velocity@1Hz", "radar velocity@10Hz", "radar range@1Hz", "radar range@10Hz"]
+    position = ((2, 0), (1, 1), (0, 1))
+    action = space.config_id(position)
+    assert space.apply(space.maximum(), action) == position and space.hold_action(position) == action
+    assert space.describe(action) == "cam 1280x720@1Hz flir 320x240@10Hz radar velocity@10Hz"
+    with pytest.raises(ConfigError, match="14 actions, more than max_actions=13"):
+        ActionSpace(build_slots(config, _sensors()), "factored", max_actions=13)

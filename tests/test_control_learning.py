@@ -149,8 +149,8 @@ def test_wide_rows_take_the_numpy_path_with_the_same_semantics() -> None:
 
 def test_exploit_acts_on_tried_actions_and_holds_where_nothing_was_learned() -> None:
     controller = _toy(seed=2)
-    controller.config = controller.config.model_copy(
-        update={"learning": controller.config.learning.model_copy(update={"init": "optimistic"})})
+    controller.config = controller.config.model_copy(update={"learning": controller.config.learning.model_copy(
+        update={"init": "optimistic", "exploit_unseen": "hold", "exploit_min_visits": 1})})
     table = controller.table
     table.q[:] = 1.0  # optimistic
     table.q[0] = [0.2, -0.4]  # dark: both tried, action 0 learned better
@@ -159,11 +159,49 @@ def test_exploit_acts_on_tried_actions_and_holds_where_nothing_was_learned() -> 
     table.visits[2, 0] = 1
     controller.policy = "exploit"
     picks = {}
-    for step, light in enumerate((0.1, 0.8, 0.5)):
+    for step, light in enumerate((0.1, 0.8, 0.3)):
         decision = controller.step(Observation(t=float(step), n_percepts=1, illumination=light, conf_agg=0.5))
         picks[light] = (decision.action, controller.position)
     assert picks[0.1][0] == 0 and picks[0.8][0] == 0  # never the untried optimistic action
-    assert picks[0.5][1] == picks[0.8][1]  # dim: never learned in, the configuration is held
+    assert picks[0.3][1] == picks[0.8][1]  # dim: never learned in, the configuration is held
+
+
+@pytest.mark.parametrize(("unseen", "dim_setting"), [("nearest", 1), ("hold", 0)])
+def test_exploit_in_an_unseen_state_acts_as_the_nearest_learned_one(unseen: str, dim_setting: int) -> None:
+    controller = _toy(seed=2, exploit_unseen=unseen, exploit_min_visits=1)  # type: ignore[arg-type]
+    table = controller.table
+    table.q[0] = [-0.4, 0.2]  # dark: 320x240 learned better, 5 visits
+    table.visits[0] = [2, 3]
+    table.q[2] = [0.1, -0.3]  # bright: 160x120, 2 visits
+    table.visits[2] = [1, 1]
+    controller.policy = "exploit"
+    for step, light in enumerate((0.8, 0.3)):  # bright, then dim (never learned in)
+        controller.step(Observation(t=float(step), n_percepts=1, illumination=light, conf_agg=0.5))
+    # dim is one bin from dark and from bright; nearest takes the more visited, dark
+    assert controller.position == ((dim_setting, 0),)
+
+
+def test_exploit_treats_a_barely_learned_state_as_unseen() -> None:
+    controller = _toy(seed=2, exploit_min_visits=4)  # type: ignore[arg-type]
+    table = controller.table
+    table.q[0] = [-0.4, 0.2]  # dark: 320x240 learned better over 5 updates
+    table.visits[0] = [2, 3]
+    table.q[1] = [0.3, -0.3]  # dim: 160x120 after 2 updates, too few to act on
+    table.visits[1] = [1, 1]
+    table.q[2] = [0.1, -0.3]  # bright: 160x120 over 4 updates
+    table.visits[2] = [2, 2]
+    controller.policy = "exploit"
+    controller.position = ((0, 0),)  # 160x120: neither holding nor dim's own row would leave it
+    controller.step(Observation(t=0.0, n_percepts=1, illumination=0.3, conf_agg=0.5))  # dim
+    # dark and bright are one bin from dim; dark has more updates
+    assert controller.position == ((1, 0),)
+
+
+def test_state_distances_count_ordinal_bins_and_a_changed_dominant_modality() -> None:
+    states = StateSpace(("illumination", "motion"), Thresholds(), ("rgb", "thermal"))
+    others = np.array([[0, 0, 1], [2, 0, 1], [0, 1, 2], [1, 2, 0]])
+    # from dark/still/rgb: itself 0, bright 2 bins, slow + thermal 1 + 1, dim + fast + none 1 + 2 + 1
+    assert states.distances((0, 0, 1), others).tolist() == [0, 2, 2, 4]
 
 
 def test_detector_compute_enters_the_modelled_power_but_not_measured_rails() -> None:
@@ -226,3 +264,32 @@ def test_reward_terms_do_not_shadow_log_record_keys() -> None:
     terms = reward_terms(RewardWeights(confidence_level=1.0), 0.2, 0.5, 3.0, 0.1, True, 0.2, 2)
     assert not set(terms) & {"event", "level", "timestamp", "logger", "state", "action", "epsilon"}
     assert terms["conf_level"] == pytest.approx(0.5)
+
+
+def test_factored_update_moves_each_blocks_chosen_cell() -> None:
+    from respecd.control.qlearning import FactoredQTable
+
+    table = FactoredQTable(2, (3, 2), Learning(learning_rate=0.5, discount=0.9, init="zero"))
+    assert table.q.shape == (2, 5) and table.cells(table.encode([2, 1])) == [2, 1]
+    assert table.greedy_tried(0) is None  # nothing learned in state 0 yet
+    table.q[1] = [0.0, 4.0, 1.0, 2.0, -1.0]  # next state: block 0 best 4, block 1 best 2
+    error = table.update(0, table.encode([1, 0]), reward=1.0, next_state=1)
+    # block 0, cell 1: 0.5 * (1 + 0.9 * 4) = 2.3; block 1, cell 0: 0.5 * (1 + 0.9 * 2) = 1.4
+    assert table.q[0].tolist() == pytest.approx([0.0, 2.3, 0.0, 1.4, 0.0])
+    assert error == pytest.approx((4.6 + 2.8) / 2)
+    assert table.visits[0].tolist() == [0, 1, 0, 1, 0] and table.updates == 1
+    assert table.greedy_tried(0) == table.encode([1, 0])
+    assert table.greedy(1) == table.encode([1, 0]) and table.choose(1, epsilon=0.0) == table.encode([1, 0])
+
+
+def test_factored_exploration_is_per_block() -> None:
+    from respecd.control.qlearning import FactoredQTable
+
+    table = FactoredQTable(1, (4, 4), Learning(init="zero"), seed=3)
+    table.q[0] = [5.0, 0, 0, 0, 5.0, 0, 0, 0]  # greedy: cell 0 in both blocks
+    picks = [table.cells(table.choose(0, epsilon=0.5)) for _ in range(4000)]
+    explored = [sum(cells[b] != 0 for cells in picks) / len(picks) for b in (0, 1)]
+    # each block explores on its own: P(cell != greedy) = 0.5 * 3/4, both blocks independently
+    assert explored == pytest.approx([0.375, 0.375], abs=0.03)
+    both = sum(cells[0] != 0 and cells[1] != 0 for cells in picks) / len(picks)
+    assert both == pytest.approx(0.375 ** 2, abs=0.03)

@@ -116,3 +116,29 @@ def test_missing_file_is_a_fresh_start(tmp_path: Path) -> None:
     assert not load_into(tmp_path / "none.npz", QTable(1, 1, Learning()), LAYOUT)
     with pytest.raises(InputError, match="no such file"):
         read_table(tmp_path / "none.npz")
+
+
+def test_factored_table_round_trips_and_a_moves_layout_does_not_load_it(tmp_path: Path) -> None:
+    from respecd.config import load_profile
+    from respecd.control.controller import Controller
+    from respecd.control.qlearning import FactoredQTable
+    from respecd.control.state import Observation
+
+    profile = load_profile("builtin:sim-rover")
+    actions = profile.controller.actions
+
+    def controller(mode: str) -> Controller:
+        config = profile.controller.model_copy(update={"actions": actions.model_copy(update={"mode": mode})})
+        return Controller.from_profile(config, profile)
+
+    learned = controller("factored")
+    for step in range(5):
+        learned.step(Observation(t=float(step), illumination=0.6, conf_agg=0.5))
+    assert isinstance(learned.table, FactoredQTable)
+    path = tmp_path / "q.npz"
+    save_table(path, learned.table, learned.layout(), {})
+    fresh = controller("factored")
+    assert fresh.table is not None and load_into(path, fresh.table, fresh.layout())
+    assert np.array_equal(fresh.table.q, learned.table.q) and fresh.table.updates == 4
+    moves = controller("moves")
+    assert moves.table is not None and not load_into(path, moves.table, moves.layout())

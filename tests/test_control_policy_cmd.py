@@ -15,7 +15,9 @@ from respecd.control.state import Observation
 
 def _learned_table(path: Path) -> Controller:
     profile = load_profile("builtin:sim-rover")
-    controller = Controller.from_profile(profile.controller.model_copy(update={"min_dwell_s": 0.0}), profile)
+    moves = profile.controller.actions.model_copy(update={"mode": "moves"})
+    controller = Controller.from_profile(profile.controller.model_copy(update={"min_dwell_s": 0.0, "actions": moves}),
+                                         profile)
     for step in range(60):
         dark = step % 20 < 10
         controller.step(Observation(t=float(step), n_percepts=10, illumination=0.05 if dark else 0.6,
@@ -61,3 +63,25 @@ def test_policy_show_bad_file_is_one_line_exit_2(
     assert main(["policy", "show", str(path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and str(path) in err[0] and message in err[0]
+
+
+def test_policy_show_factored_table_names_a_cell_per_sensor(tmp_path: Path,
+                                                             capsys: pytest.CaptureFixture[str]) -> None:
+    profile = load_profile("builtin:sim-rover")
+    config = profile.controller.model_copy(update={
+        "min_dwell_s": 0.0, "actions": profile.controller.actions.model_copy(update={"mode": "factored"})})
+    controller = Controller.from_profile(config, profile)
+    for step in range(30):
+        controller.step(Observation(t=float(step), n_percepts=10, illumination=0.6, conf_agg=0.7, latency_s=0.05))
+    path = tmp_path / "q.npz"
+    save_table(path, controller.table, controller.layout(), {"profile": profile.name})
+    assert main(["policy", "show", str(path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("Q-table sim-rover: 3645 states x 40 actions, 29 updates")
+    (row,) = lines[3:]
+    assert row.split()[-2:] == ["29", "40/40"]  # 29 updates (each touched all four sensor blocks), all cells tried
+    state = controller.states.index(controller.states.from_names({
+        "illumination": "bright", "motion": "still", "radar_density": "sparse", "load": "low",
+        "sync": "good", "confidence": "high", "dominant": "none"}))
+    best = controller.space.describe(controller.table.greedy_tried(state))
+    assert best.startswith("rgb ") and " depth " in best and best in row

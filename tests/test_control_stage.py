@@ -98,7 +98,7 @@ async def test_learn_run_decides_applies_and_persists(tmp_path: Path) -> None:
         if name in rig.drivers:
             assert rig.drivers[name].applied == applied  # what the drivers really run
     assert {"quality", "power", "latency", "switch", "reward", "td_error"} <= set(rig.decisions[-1].terms)
-    assert len(rig.decisions[-1].q_values) == rig.stage.controller.space.n
+    assert len(rig.decisions[-1].q_values) == rig.stage.controller.space.columns
     table = rig.stage.controller.table
     assert table.updates == len(rig.decisions) - 1
     assert rig.stage.table_path.exists()

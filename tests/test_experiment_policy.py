@@ -66,7 +66,7 @@ def trained(profile_path: Path, tmp_path_factory: pytest.TempPathFactory) -> Pat
 def test_training_updates_and_saves_the_table(trained: Path, profile_path: Path) -> None:
     meta, q, visits = read_table(trained)
     assert meta["updates"] == 2 * (6 * 2 - 1)  # every step but an episode's first scores the previous action
-    assert visits.sum() == meta["updates"]
+    assert visits.sum() == meta["updates"] * len(meta["layout"]["actions"]["blocks"])  # a cell per sensor
     fresh = controller_for(load_profile(profile_path), "learn").table
     assert not np.array_equal(q, fresh.q)  # learning moved some Q-values off their initial value
     controller = rl_controller(load_profile(profile_path), trained)

@@ -20,7 +20,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", default="builtin:sim-rover", help="profile whose sensors define the spaces")
     parser.add_argument("--steps", type=int, default=20000, help="decision steps to time (default 20000)")
     parser.add_argument("--policy", choices=("learn", "exploit", "static", "heuristic"), default="learn")
-    parser.add_argument("--mode", choices=("moves", "product"), default=None, help="override the action mode")
+    parser.add_argument("--mode", choices=("moves", "product", "factored"), default=None,
+                        help="override the action mode")
     parser.add_argument("--percepts", type=int, default=2000, help="percepts for the feature/state timing")
     parser.add_argument("--rate-levels", default=None, help="override the rate levels, e.g. 1,10,30 (Hz)")
     parser.add_argument("--seed", type=int, default=0)
@@ -123,5 +124,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         "action_mode": config.actions.mode,
         "states": controller.states.size,
         "actions": controller.space.n,
+        "table_columns": controller.space.columns,
         "profile": profile.name,
     }

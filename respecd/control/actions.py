@@ -10,6 +10,11 @@ rate per slot. The profile chooses how actions move between positions:
               RGB + thermal + radar + depth, small enough to learn online.
 * ``product`` every action is a whole position (the paper's full configurations);
               |A| = Π |settings|·|rates|, which grows fast, so it is capped by ``max_actions``.
+* ``factored`` every action is a whole position too, but chosen sensor by sensor: the
+              Q-table holds one block of |settings|·|rates| columns per slot
+              (``FactoredQTable``), Σ instead of Π — 40 columns for the four sensors
+              where the product has 7500. Action ids are the product's, so a decision
+              names the full position it asks for.
 
 Capabilities fold into the space when they are known: rate levels above what a driver can
 do (the FLIR One stops near 9 Hz) collapse onto its maximum instead of becoming actions
@@ -149,13 +154,16 @@ class ActionSpace:
         self.n_configs = math.prod(self._radix)
         self.moves: tuple[Move, ...] = (KEEP, *self._build_moves()) if mode == "moves" else ()
         self.n = len(self.moves) if mode == "moves" else self.n_configs
+        # Q-table columns: one per action, or one block of cells per slot in factored mode
+        self.blocks: tuple[int, ...] = self._radix if mode == "factored" else (self.n,)
+        self.columns = sum(self.blocks)
         # SensorConfig per (slot, setting, rate), built once: requests() sits in the timed step
         self._requests = [
             {(i, j): s.request(i, j) for i in range(len(s.settings)) for j in range(len(s.rates))} for s in slots
         ]
-        if self.n > max_actions:
+        if self.columns > max_actions:
             raise ConfigError(
-                f"controller.actions: {mode} space has {self.n} actions, more than max_actions={max_actions} "
+                f"controller.actions: {mode} space has {self.columns} actions, more than max_actions={max_actions} "
                 "(use mode: moves, or fewer rate levels / resolutions)"
             )
 
@@ -196,7 +204,7 @@ class ActionSpace:
     # actions ---------------------------------------------------------------------------
     def apply(self, position: Position, action: int) -> Position:
         """The position an action leads to (a move past the end of a ladder stays put)."""
-        if self.mode == "product":
+        if self.mode != "moves":
             return self.position_of(action)
         move = self.moves[action]
         if move.slot < 0:
@@ -219,7 +227,7 @@ class ActionSpace:
         return tuple(table[cell] for table, cell in zip(self._requests, position, strict=True))
 
     def describe(self, action: int) -> str:
-        if self.mode == "product":
+        if self.mode != "moves":
             return self.describe_position(self.position_of(action))
         move = self.moves[action]
         if move.slot < 0:
@@ -227,15 +235,20 @@ class ActionSpace:
         return f"{self.slots[move.slot].name} {move.kind} {'up' if move.step > 0 else 'down'}"
 
     def describe_position(self, position: Position) -> str:
-        parts = []
-        for slot, (setting, rate) in zip(self.slots, position, strict=True):
-            value = slot.settings[setting]
-            label = f"{value[0]}x{value[1]}" if isinstance(value, tuple) else (value or "")
-            parts.append(f"{slot.name} {label}@{slot.rates[rate]:g}Hz".replace(" @", " "))
-        return " ".join(parts)
+        return " ".join(self.describe_cell(i, setting, rate) for i, (setting, rate) in enumerate(position))
 
     def descriptions(self) -> list[str]:
-        return [self.describe(a) for a in range(self.n)]
+        """A name per Q-table column: the actions, or in factored mode each slot's cells."""
+        if self.mode != "factored":
+            return [self.describe(a) for a in range(self.n)]
+        return [self.describe_cell(i, setting, rate) for i, slot in enumerate(self.slots)
+                for setting in range(len(slot.settings)) for rate in range(len(slot.rates))]
+
+    def describe_cell(self, slot_index: int, setting: int, rate: int) -> str:
+        slot = self.slots[slot_index]
+        value = slot.settings[setting]
+        label = f"{value[0]}x{value[1]}" if isinstance(value, tuple) else (value or "")
+        return f"{slot.name} {label}@{slot.rates[rate]:g}Hz".replace(" @", " ")
 
     def fingerprint_data(self) -> dict[str, Any]:
         """What a saved Q-table must match to be reused."""

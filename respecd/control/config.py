@@ -15,7 +15,7 @@ from respecd.drivers.base import MAX_RATE_HZ, MIN_RATE_HZ, StrictModel
 from respecd.messages import RadarMode, Resolution
 
 Policy = Literal["learn", "exploit", "static", "heuristic"]
-ActionMode = Literal["moves", "product"]
+ActionMode = Literal["moves", "product", "factored"]
 Factor = Literal["illumination", "motion", "radar_density", "load", "sync", "confidence"]
 ControlledModality = Literal["rgb", "thermal", "radar", "depth"]
 
@@ -111,6 +111,18 @@ class Learning(StrictModel):
     epsilon_min: float = Field(0.05, ge=0, le=1, description="Floor the decay stops at.")
     epsilon_decay: float = Field(0.995, gt=0, le=1, description="Factor applied to epsilon after each learning step.")
     epsilon_exploit: float = Field(0.0, ge=0, le=1, description="Exploration in exploit mode (0 = purely greedy).")
+    exploit_unseen: Literal["nearest", "hold"] = Field(
+        "nearest",
+        description="Exploit in a state the table never learned in: act as in the nearest learned state (fewest "
+        "bins apart, the most visited among equals), or hold the current configuration.",
+    )
+    exploit_min_visits: int = Field(
+        5,
+        ge=1,
+        le=1_000_000,
+        description="Exploit treats a state with fewer updates than this as never learned in (see exploit_unseen): "
+        "a row updated once or twice holds a reward sample or two, not a value.",
+    )
     init: Literal["zero", "optimistic"] = Field(
         "optimistic", description="Initial Q-values: zero, or optimistic (tries every action before settling)."
     )
@@ -127,9 +139,10 @@ class ActionSpaceConfig(StrictModel):
     """The settings each controlled modality can take (cheapest first)."""
 
     mode: ActionMode = Field(
-        "moves",
+        "factored",
         description="moves: keep, or raise/lower one sensor's rate or setting (small, learns online); "
-        "product: every action a full configuration (grows multiplicatively).",
+        "product: every action a full configuration (grows multiplicatively); "
+        "factored: a full configuration chosen sensor by sensor, one Q-table block per sensor (grows additively).",
     )
     modalities: tuple[ControlledModality, ...] = Field(
         ("rgb", "thermal", "radar", "depth"), description="Modalities the controller re-configures (when present)."

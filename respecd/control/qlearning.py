@@ -84,3 +84,87 @@ class QTable:
         self.visits[...] = visits
         self.updates = int(updates)
         self.epsilon = float(epsilon)
+
+
+class FactoredQTable(QTable):
+    """One block of columns per sensor: each sensor picks its own (setting, rate) cell and
+    every block learns from the shared reward (independent learners on a factored action).
+
+    An action is absolute, so its value does not depend on a configuration the state cannot
+    see (the aliasing of relative moves), and the table holds Σ|cells| columns per state
+    where the full product would hold Π|cells|. An action id is the mixed-radix number of the
+    cells, first block most significant: the number ``ActionSpace.config_id`` gives the
+    position, so decisions, logs and the dwell hold read as in product mode.
+    """
+
+    def __init__(self, n_states: int, blocks: tuple[int, ...], learning: Learning, seed: int = 0) -> None:
+        if not blocks or min(blocks) < 1:
+            raise ValueError(f"blocks must be positive sizes, got {blocks}")
+        super().__init__(n_states, sum(blocks), learning, seed)
+        self.blocks = tuple(blocks)
+        self._spans = []
+        start = 0
+        for size in self.blocks:
+            self._spans.append((start, start + size))
+            start += size
+
+    def cells(self, action: int) -> list[int]:
+        """Each block's cell in an action id."""
+        out = []
+        for size in reversed(self.blocks):
+            action, cell = divmod(action, size)
+            out.append(cell)
+        return out[::-1]
+
+    def encode(self, cells: list[int]) -> int:
+        action = 0
+        for cell, size in zip(cells, self.blocks, strict=True):
+            action = action * size + cell
+        return action
+
+    def update(self, state: int, action: int, reward: float, next_state: int) -> float:
+        """The Watkins update of every block's chosen cell; returns the mean TD error."""
+        lr, discount = self.learning.learning_rate, self.learning.discount
+        row, following = self.q[state], self.q[next_state].tolist()
+        total = 0.0
+        for (start, end), cell in zip(self._spans, self.cells(action), strict=True):
+            column = start + cell
+            error = reward + discount * max(following[start:end]) - float(row[column])
+            row[column] += lr * error
+            self.visits[state, column] += 1
+            total += error
+        self.updates += 1
+        self.epsilon = max(self.learning.epsilon_min, self.epsilon * self.learning.epsilon_decay)
+        return total / len(self.blocks)
+
+    def _best(self, values: list[float], candidates: list[int]) -> int:
+        best = max(values[i] for i in candidates)
+        ties = [i for i in candidates if values[i] == best]
+        return ties[0] if len(ties) == 1 else ties[int(self.rng.integers(len(ties)))]
+
+    def greedy(self, state: int) -> int:
+        values = self.q[state].tolist()
+        return self.encode([self._best(values, list(range(a, b))) - a for a, b in self._spans])
+
+    def greedy_tried(self, state: int) -> int | None:
+        """Each block's best cell among those updated in ``state``; None if the state was never
+        updated (every update visits all blocks, so either all have tried cells or none)."""
+        values, visits = self.q[state].tolist(), self.visits[state].tolist()
+        cells = []
+        for a, b in self._spans:
+            tried = [i for i in range(a, b) if visits[i]]
+            if not tried:
+                return None
+            cells.append(self._best(values, tried) - a)
+        return self.encode(cells)
+
+    def choose(self, state: int, epsilon: float) -> int:
+        """ε-greedy per block: each sensor explores on its own with probability ``epsilon``."""
+        values = self.q[state].tolist()
+        cells = []
+        for a, b in self._spans:
+            if epsilon > 0.0 and self.rng.random() < epsilon:
+                cells.append(int(self.rng.integers(b - a)))
+            else:
+                cells.append(self._best(values, list(range(a, b))) - a)
+        return self.encode(cells)

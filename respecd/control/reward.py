@@ -5,7 +5,7 @@ P is the board power from the rails when readable, else the profile's per-sensor
 model over what the drivers really applied plus the detector's compute power (``compute_w``
 × its busy share): on the rover the rails see the GPU, so a model without it would let the
 agent keep the detector running flat out for free. The switch indicator is "the configuration
-changed": in product mode that is exactly [a_t ≠ a_{t−1}]; in moves mode repeating "thermal
+changed": in product and factored mode that is exactly [a_t ≠ a_{t−1}]; in moves mode repeating "thermal
 rate up" is a switch while "keep" is not, which is what costs the sensors a re-arm.
 An optional ``confidence_level`` term (default 0, the paper's reward) adds the ConfAgg level.
 

@@ -118,6 +118,7 @@ class ControllerStage:
             policy=self.config.policy,
             states=self.controller.states.size,
             actions=self.controller.space.n,
+            table_columns=self.controller.space.columns,
             table=str(self.table_path),
         )
 

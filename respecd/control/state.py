@@ -13,6 +13,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 from respecd.control.config import Factor, Thresholds
 
 BIN_NAMES: dict[str, tuple[str, str, str]] = {
@@ -124,6 +126,15 @@ class StateSpace:
         if factor == "sync":
             return lambda o: bin3(o.sync, th.sync)
         return lambda o: bin3(o.conf_agg, th.confidence)
+
+    def distances(self, bins: Sequence[int], others: np.ndarray) -> np.ndarray:
+        """How far ``bins`` lies from each row of ``others`` (states as bins): ordinal factors
+        count the bins between (dark is further from bright than dim is), the dominant modality
+        counts 1 when it differs."""
+        gaps = np.abs(others - np.asarray(bins))
+        if self.contribution_modalities:
+            gaps[:, -1] = gaps[:, -1] > 0
+        return gaps.sum(axis=1)
 
     def index(self, bins: Sequence[int]) -> int:
         idx = 0
