@@ -102,7 +102,7 @@ class FactoredQTable(QTable):
             raise ValueError(f"blocks must be positive sizes, got {blocks}")
         super().__init__(n_states, sum(blocks), learning, seed)
         self.blocks = tuple(blocks)
-        self._spans = []
+        self._spans: list[tuple[int, int]] = []  # each block's [start, end) columns
         start = 0
         for size in self.blocks:
             self._spans.append((start, start + size))
