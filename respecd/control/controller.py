@@ -14,11 +14,10 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
-import numpy as np
-
 from respecd.control.actions import ActionSpace, Position, build_slots
 from respecd.control.baselines import heuristic_position, static_position
 from respecd.control.config import ControllerConfig
+from respecd.control.learned import LearnedStates
 from respecd.control.qlearning import FactoredQTable, QTable
 from respecd.control.reward import compute_power, reward_terms, sensing_delay, sensor_power
 from respecd.control.state import Observation, StateSpace, motion_bin
@@ -56,7 +55,7 @@ class Controller:
         self._model_cache: tuple[Position, float] | None = None
         self._applied_seen: tuple[SensorConfig, ...] | None = None
         self._applied_power: float | None = None
-        self._learned: tuple[int, np.ndarray, np.ndarray, np.ndarray, dict[int, int | None]] | None = None
+        self._learned: LearnedStates | None = None
 
     @classmethod
     def from_profile(
@@ -145,48 +144,28 @@ class Controller:
         return action, self.space.apply(self.position, action)
 
     def _exploit(self, state: int) -> tuple[int, Position]:
-        """Best learned action; in a state never learned in, that of the nearest learned
-        state (``exploit_unseen: nearest``) or hold the configuration."""
+        """Best learned action; in a state never learned in (fewer than ``exploit_min_visits``
+        updates), that of the nearest learned state (``exploit_unseen: nearest``) or hold."""
         assert self.table is not None
         epsilon = self.config.learning.epsilon_exploit
         if epsilon > 0.0 and self.table.rng.random() < epsilon:
             action: int | None = int(self.table.rng.integers(self.space.n))
         else:
-            learning = self.config.learning
-            action = self.table.greedy_tried(state) if self._learned_in(state) else None
-            if action is None and learning.exploit_unseen == "nearest":
-                stand_in = self._nearest_learned(state)
+            learned = self._learned_states()
+            action = self.table.greedy_tried(state) if state in learned else None
+            if action is None and self.config.learning.exploit_unseen == "nearest":
+                stand_in = learned.nearest(state)
                 action = None if stand_in is None else self.table.greedy_tried(stand_in)
         if action is None:
             return self.space.hold_action(self.position), self.position
         return action, self.space.apply(self.position, action)
 
-    def _learned_in(self, state: int) -> bool:
+    def _learned_states(self) -> LearnedStates:
+        """Rebuilt only when the table changed (a frozen table: once, after it is loaded)."""
         assert self.table is not None
-        return self.config.learning.exploit_min_visits <= 1 or (
-            int(self.table.visits[state].sum()) // len(self.space.blocks) >= self.config.learning.exploit_min_visits)
-
-    def _nearest_learned(self, state: int) -> int | None:
-        """The learned state closest to ``state`` (``StateSpace.distances``), the most visited
-        among equals. A table's states are a few percent of the space (issue #7: 129 of 3645
-        after training), and held-out worlds reach combinations training never did: holding
-        there froze whatever configuration the previous scene had left."""
-        assert self.table is not None
-        if self._learned is None or self._learned[0] != self.table.updates:  # built once per frozen table
-            visits = self.table.visits.sum(axis=1)
-            rows = np.flatnonzero(visits >= self.config.learning.exploit_min_visits * len(self.space.blocks))
-            grid = np.array([self.states.unindex(int(s)) for s in rows], dtype=np.int64).reshape(
-                len(rows), len(self.states.dims))
-            self._learned = (self.table.updates, rows, grid, visits[rows], {})
-        _, rows, grid, row_visits, memo = self._learned
-        if state not in memo:
-            if rows.size == 0:
-                memo[state] = None
-            else:
-                distance = self.states.distances(self.states.unindex(state), grid)
-                nearest = distance == distance.min()
-                memo[state] = int(rows[nearest][np.argmax(row_visits[nearest])])
-        return memo[state]
+        if self._learned is None or self._learned.version != self.table.updates:
+            self._learned = LearnedStates(self.table, self.states, self.config.learning.exploit_min_visits)
+        return self._learned
 
     def _same_applied(self, applied: Mapping[str, SensorConfig]) -> bool:
         """True when ``applied`` holds the very objects of the last step (nothing re-applied)."""

@@ -32,6 +32,10 @@ class QTable:
     def shape(self) -> tuple[int, int]:
         return self.q.shape  # type: ignore[return-value]
 
+    def state_updates(self) -> np.ndarray:
+        """Updates per state (each visits one column here, one per block in a factored table)."""
+        return self.visits.sum(axis=1)
+
     def update(self, state: int, action: int, reward: float, next_state: int) -> float:
         """One Watkins update; returns the TD error."""
         target = reward + self.learning.discount * self._row_max(next_state)
@@ -107,6 +111,10 @@ class FactoredQTable(QTable):
         for size in self.blocks:
             self._spans.append((start, start + size))
             start += size
+        self._columns = [list(range(a, b)) for a, b in self._spans]
+
+    def state_updates(self) -> np.ndarray:
+        return self.visits.sum(axis=1) // len(self.blocks)
 
     def cells(self, action: int) -> list[int]:
         """Each block's cell in an action id."""
@@ -144,7 +152,8 @@ class FactoredQTable(QTable):
 
     def greedy(self, state: int) -> int:
         values = self.q[state].tolist()
-        return self.encode([self._best(values, list(range(a, b))) - a for a, b in self._spans])
+        spans = zip(self._spans, self._columns, strict=True)
+        return self.encode([self._best(values, columns) - a for (a, _), columns in spans])
 
     def greedy_tried(self, state: int) -> int | None:
         """Each block's best cell among those updated in ``state``; None if the state was never
@@ -162,9 +171,9 @@ class FactoredQTable(QTable):
         """ε-greedy per block: each sensor explores on its own with probability ``epsilon``."""
         values = self.q[state].tolist()
         cells = []
-        for a, b in self._spans:
+        for (a, b), columns in zip(self._spans, self._columns, strict=True):
             if epsilon > 0.0 and self.rng.random() < epsilon:
                 cells.append(int(self.rng.integers(b - a)))
             else:
-                cells.append(self._best(values, list(range(a, b))) - a)
+                cells.append(self._best(values, columns) - a)
         return self.encode(cells)
