@@ -128,6 +128,26 @@ def test_motion_score_skips_repeats_and_resolution_changes_and_uses_thermal() ->
     assert score > Thresholds().motion_image[1]
 
 
+@pytest.mark.parametrize("resolution", [(160, 120), (320, 240)])
+def test_static_thermal_scene_reads_still(resolution: tuple[int, int]) -> None:
+    """The simulated thermal camera's noise is under one count per block mean: rounding
+    block means to whole counts made a static scene score exactly 4.0 or 5.0, and 5.0 is
+    the still/slow edge."""
+    from respecd.sim.config import SimulationConfig
+    from respecd.sim.render import render_thermal
+    from respecd.sim.world import World
+
+    state = World(SimulationConfig(scenarios=["poor-light-static"]), 501).state_at(5.0)
+    still_below = Thresholds().motion_image[0]
+    for pair in range(4):
+        first, second = (render_thermal(state, resolution, np.random.default_rng([pair, k])) for k in (0, 1))
+        extractor = FeatureExtractor()
+        extractor.sample(_percept(0.0, {"thermal": Frame("thermal", 0.0, 0, first)}))
+        score = extractor.sample(_percept(0.1, {"thermal": Frame("thermal", 0.1, 1, second)})).motion_image
+        assert score == pytest.approx(3.8, abs=0.6)
+        assert score < still_below
+
+
 def test_imu_radar_and_sync_features() -> None:
     imu = Frame("imu", 0.0, 0, np.array([0, 0, 9.81, 0.3, 0.4, 0.0], np.float32))
     radar = Frame("radar", 0.0, 0, np.zeros((7, 5), np.float32))

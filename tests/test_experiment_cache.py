@@ -50,6 +50,22 @@ def test_fingerprint_changes_with_checkpoint_and_settings(profile) -> None:
     assert fingerprint(model_hash(a.model), ident) != fingerprint(model_hash(a.model), stricter)
 
 
+def test_fingerprint_covers_the_code_of_every_stored_field() -> None:
+    """An outcome stores the feature extractor's luminance and motion: the modules that
+    compute them must be in the fingerprint, or a change to them would replay stale values."""
+    import inspect
+    from pathlib import PurePath
+
+    from respecd.control import features, imagestats
+    from respecd.experiment import outcomes
+    from respecd.experiment.cache import SOURCE_MODULES
+
+    fingerprinted = {(package, name) for package, names in SOURCE_MODULES.items() for name in names}
+    for module in (features, imagestats, outcomes):
+        package, name = module.__name__.rsplit(".", 1)[0], PurePath(inspect.getfile(module)).name
+        assert (package, name) in fingerprinted, module.__name__
+
+
 def test_key_changes_with_configuration_and_attribution() -> None:
     rgb = SensorConfig("rgb", rate_hz=10.0, resolution=(640, 360))
     radar = SensorConfig("radar", rate_hz=10.0, mode="range")

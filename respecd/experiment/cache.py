@@ -11,7 +11,8 @@ Keys and invalidation. A key is the SHA-256 of:
   * the *fingerprint*: hash of the detector's weights (its state dict, so a random model in
     a test and a checkpoint file are handled alike), the perception settings that shape
     the outcome (thresholds, attribution targets, calibration), the sources of the
-    renderers and of the perception code, and ``CACHE_VERSION``;
+    renderers, of the perception code and of the feature extractor (an outcome stores the
+    scene features the state needs), and ``CACHE_VERSION``;
   * the world: simulation settings and seed;
   * the frames: one ``FrameId`` per detector input, and whether attribution ran.
 Each fingerprint gets its own SQLite file ``outcomes-<fingerprint>.sqlite`` under
@@ -31,8 +32,10 @@ from pathlib import Path
 from typing import Any
 
 CACHE_VERSION = 1
-# modules whose code decides what an outcome is: renderers, alignment, network, NMS, attribution
+# modules whose code decides what an outcome is: renderers, alignment, network, NMS, attribution,
+# and the feature extractor whose scene features (luminance, motion) an outcome stores
 SOURCE_MODULES = {
+    "respecd.control": ("features.py", "imagestats.py"),
     "respecd.sim": ("camera.py", "radar_model.py", "render.py", "scenarios.py", "state.py", "textures.py",
                     "world.py"),
     "respecd.perception": ("align.py", "attribution.py", "boxes.py", "detector.py", "model.py"),
