@@ -156,3 +156,24 @@ def test_factored_space_names_the_product_but_holds_one_block_per_sensor() -> No
     assert space.describe(action) == "cam 1280x720@1Hz flir 320x240@10Hz radar velocity@10Hz"
     with pytest.raises(ConfigError, match="14 actions, more than max_actions=13"):
         ActionSpace(build_slots(config, _sensors()), "factored", max_actions=13)
+
+
+def test_heuristic_reads_load_even_when_the_learner_leaves_it_out() -> None:
+    """``factors`` shapes the learner's state; the baseline it is compared with must not change."""
+    from respecd.config import load_profile
+    from respecd.control.controller import Controller
+    from respecd.control.state import Observation
+
+    profile = load_profile("builtin:sim-rover")
+    without_load = profile.controller.model_copy(
+        update={"factors": ("illumination", "motion", "radar_density", "sync", "confidence")})
+    learner = Controller.from_profile(without_load.model_copy(update={"policy": "learn"}), profile)
+    assert "load" not in learner.states.factors
+    chosen = {}
+    for load in (0.1, 0.95):
+        heuristic = Controller.from_profile(without_load.model_copy(update={"policy": "heuristic"}), profile)
+        obs = Observation(t=10.0, n_percepts=5, illumination=0.5, motion_image=8.0, radar_points=10.0, load=load,
+                          conf_agg=0.5)
+        chosen[load] = heuristic.step(obs).configs
+    rgb_low, rgb_high = chosen[0.1][0], chosen[0.95][0]
+    assert rgb_high.rate_hz < rgb_low.rate_hz  # high load: one rung down

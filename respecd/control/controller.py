@@ -16,7 +16,7 @@ from typing import Any
 
 from respecd.control.actions import ActionSpace, Position, build_slots
 from respecd.control.baselines import heuristic_position, static_position
-from respecd.control.config import ControllerConfig
+from respecd.control.config import ALL_FACTORS, ControllerConfig
 from respecd.control.learned import LearnedStates
 from respecd.control.qlearning import FactoredQTable, QTable
 from respecd.control.reward import compute_power, reward_terms, sensing_delay, sensor_power
@@ -69,7 +69,9 @@ class Controller:
             if slot.modality not in modalities:
                 modalities.append(slot.modality)
         contributions = modalities if config.contribution == "dominant" else []
-        states = StateSpace(config.factors, config.thresholds, contributions)
+        # the heuristic's rules read all six bins: ``factors`` shapes the learner's state, not the baseline
+        factors = config.factors if config.policy in LEARNING_POLICIES else ALL_FACTORS
+        states = StateSpace(factors, config.thresholds, contributions)
         powers = {s.name: s.power for s in profile.sensors}
         return cls(config, space, states, powers)
 
