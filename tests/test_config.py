@@ -59,6 +59,15 @@ def test_paper_reward_ablation_differs_from_sim_rover_only_in_the_reward():
     assert ablation_reward == {**base_reward, "compute_w": 0.0, "staleness": (0.0, 0.0, 0.0)}
 
 
+def test_no_load_ablation_differs_from_sim_rover_only_in_the_learners_factors():
+    base = load_profile("builtin:sim-rover").model_dump()
+    ablation = load_profile(REPO / "configs" / "sim-rover-no-load.yaml").model_dump()
+    base_factors, ablation_factors = base["controller"].pop("factors"), ablation["controller"].pop("factors")
+    assert ablation.pop("name") == "sim-rover-no-load" and base.pop("name") == "sim-rover"
+    assert ablation == base
+    assert ablation_factors == tuple(f for f in base_factors if f != "load")
+
+
 def test_every_problem_has_file_line_path_and_expectation(tmp_path):
     assert problems_of(tmp_path, BAD) == [
         "P:6: sensors.0.rate_hz: Input should be less than or equal to 30 (got 45)",
