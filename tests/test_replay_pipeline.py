@@ -140,13 +140,19 @@ def test_cut_log_replays_up_to_the_cut_with_a_warning(
 
 
 def test_speed_2_replays_on_a_scaled_wall_clock(session_log: Path, tmp_path: Path) -> None:
-    report = tmp_path / "x2.json"
-    argv = ["--replay", str(session_log), "--speed", "2", "--duration", "1.5", "--policy", "heuristic",
-            "--report", str(report), "--log-level", "warning"]
-    assert main(argv) == 0
-    entry = json.loads(report.read_text())["policies"]["heuristic"]
+    entries = {}
+    for speed in ("max", "2"):
+        report = tmp_path / f"x{speed}.json"
+        argv = ["--replay", str(session_log), "--speed", speed, "--duration", "1.5", "--policy", "heuristic",
+                "--report", str(report), "--log-level", "warning"]
+        assert main(argv) == 0
+        entries[speed] = json.loads(report.read_text())["policies"]["heuristic"]
+    entry = entries["2"]
     assert entry["speed"] == "2" and entry["latency_model"] == "none (perception off)"
-    assert entry["compute"]["frames"]["rgb"] > 10  # frames flowed in real (halved) time
+    # frames flowed in real (halved) time: as many as lockstep delivers from the same 1.5 s of
+    # log, give or take what a busy loop drops (the recorded rate depends on the recording run)
+    logged = entries["max"]["compute"]["frames"]["rgb"]
+    assert logged > 0 and entry["compute"]["frames"]["rgb"] >= logged / 2
     assert entry["wall_s"] >= 0.7  # 1.5 s of log at 2x: paced by the wall clock, not lockstep
 
 
