@@ -49,22 +49,25 @@ def test_embedded_default_profile_loads_from_the_package():
     assert load_profile("builtin:sim-rover").name == "sim-rover"
 
 
-def test_paper_reward_ablation_differs_from_sim_rover_only_in_the_reward():
-    # docs/RESULTS.md compares the two: any other drift would make that comparison unfair
+def _ablation_difference(name: str, key: str) -> tuple[object, object]:
+    """``controller.<key>`` of sim-rover and of ``configs/<name>.yaml``, after checking that
+    nothing else but the name differs: docs/RESULTS.md compares the two, and any other drift
+    would make that comparison unfair."""
     base = load_profile("builtin:sim-rover").model_dump()
-    ablation = load_profile(REPO / "configs" / "sim-rover-paper-reward.yaml").model_dump()
-    base_reward, ablation_reward = base["controller"].pop("reward"), ablation["controller"].pop("reward")
-    assert ablation.pop("name") == "sim-rover-paper-reward" and base.pop("name") == "sim-rover"
+    ablation = load_profile(REPO / "configs" / f"{name}.yaml").model_dump()
+    base_value, ablation_value = base["controller"].pop(key), ablation["controller"].pop(key)
+    assert ablation.pop("name") == name and base.pop("name") == "sim-rover"
     assert ablation == base
+    return base_value, ablation_value
+
+
+def test_paper_reward_ablation_differs_from_sim_rover_only_in_the_reward():
+    base_reward, ablation_reward = _ablation_difference("sim-rover-paper-reward", "reward")
     assert ablation_reward == {**base_reward, "compute_w": 0.0, "staleness": (0.0, 0.0, 0.0)}
 
 
 def test_no_load_ablation_differs_from_sim_rover_only_in_the_learners_factors():
-    base = load_profile("builtin:sim-rover").model_dump()
-    ablation = load_profile(REPO / "configs" / "sim-rover-no-load.yaml").model_dump()
-    base_factors, ablation_factors = base["controller"].pop("factors"), ablation["controller"].pop("factors")
-    assert ablation.pop("name") == "sim-rover-no-load" and base.pop("name") == "sim-rover"
-    assert ablation == base
+    base_factors, ablation_factors = _ablation_difference("sim-rover-no-load", "factors")
     assert ablation_factors == tuple(f for f in base_factors if f != "load")
 
 
