@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from respecd.control.qlearning import block_spans, updates_per_state
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="policy_command", metavar="VERB", required=True)
@@ -47,7 +49,7 @@ def render(meta: dict[str, Any], q: np.ndarray, visits: np.ndarray, limit: int =
     actions: list[str] = layout["actions"]["names"]
     dims = [len(b) for b in bin_names]
     blocks = layout["actions"].get("blocks")
-    state_visits = visits.sum(axis=1) // (len(blocks) if blocks else 1)  # updates: each touches every block
+    state_visits = updates_per_state(visits, len(blocks) if blocks else 1)
     visited = np.flatnonzero(state_visits)
     n_states, n_actions = q.shape
     lines = [
@@ -85,10 +87,7 @@ def _best_tried(q: np.ndarray, visits: np.ndarray, names: list[str],
     """What exploit does per row: the best *tried* action (an untried one only has its initial
     value); in a factored table the best tried cell of each block, Q their mean."""
     masked = np.where(visits > 0, q, -np.inf)
-    spans = [(0, q.shape[1])]
-    if blocks:
-        ends = np.cumsum(blocks)
-        spans = list(zip(ends - np.asarray(blocks), ends, strict=True))
+    spans = block_spans(blocks) if blocks else [(0, q.shape[1])]
     picks = [masked[:, a:b].argmax(axis=1) + a for a, b in spans]
     labels = [" ".join(names[p[i]] for p in picks) for i in range(q.shape[0])]
     values = np.mean([q[np.arange(q.shape[0]), p] for p in picks], axis=0)

@@ -16,6 +16,17 @@ from respecd.control.config import Learning
 SMALL_ROW = 64  # actions per state below which plain Python beats numpy per call
 
 
+def block_spans(blocks: tuple[int, ...] | list[int]) -> list[tuple[int, int]]:
+    """Each block's [start, end) columns in a factored table's row."""
+    ends = np.cumsum(blocks).tolist()
+    return [(end - size, end) for size, end in zip(blocks, ends, strict=True)]
+
+
+def updates_per_state(visits: np.ndarray, n_blocks: int) -> np.ndarray:
+    """Updates per state from visit counts: an update visits one column of each block."""
+    return visits.sum(axis=1) // n_blocks
+
+
 class QTable:
     """Q-values (n_states × n_actions, float64) plus visit counts and the ε schedule."""
 
@@ -34,7 +45,7 @@ class QTable:
 
     def state_updates(self) -> np.ndarray:
         """Updates per state (each visits one column here, one per block in a factored table)."""
-        return self.visits.sum(axis=1)
+        return updates_per_state(self.visits, 1)
 
     def update(self, state: int, action: int, reward: float, next_state: int) -> float:
         """One Watkins update; returns the TD error."""
@@ -106,15 +117,11 @@ class FactoredQTable(QTable):
             raise ValueError(f"blocks must be positive sizes, got {blocks}")
         super().__init__(n_states, sum(blocks), learning, seed)
         self.blocks = tuple(blocks)
-        self._spans: list[tuple[int, int]] = []  # each block's [start, end) columns
-        start = 0
-        for size in self.blocks:
-            self._spans.append((start, start + size))
-            start += size
+        self._spans = block_spans(self.blocks)
         self._columns = [list(range(a, b)) for a, b in self._spans]
 
     def state_updates(self) -> np.ndarray:
-        return self.visits.sum(axis=1) // len(self.blocks)
+        return updates_per_state(self.visits, len(self.blocks))
 
     def cells(self, action: int) -> list[int]:
         """Each block's cell in an action id."""
