@@ -110,6 +110,44 @@ def test_bench_scenarios_json(trained: Path, profile_path: Path, tmp_path: Path,
                                             "experiment")) > 0  # the outcomes went to the user cache dir
 
 
+def test_bench_with_a_pinned_latency_repeats_a_run(trained: Path, profile_path: Path, tmp_path: Path,
+                                                  monkeypatch) -> None:
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    base = ["bench", "scenarios", "--random-detector", "--profile", str(profile_path), "--table", str(trained),
+            "--duration", "2", "--latency-repeats", "1"]
+    first, again = tmp_path / "first.json", tmp_path / "again.json"
+    assert cli_main([*base, "--json", str(first)]) == 0
+    measured = json.loads(first.read_text())
+    slower = {**measured, "latency_ms": {k: {n: 3 * v for n, v in entry.items()}
+                                         for k, entry in measured["latency_ms"].items()}}
+    (tmp_path / "slower.json").write_text(json.dumps(slower))
+    assert cli_main([*base, "--latency", str(first), "--json", str(again)]) == 0
+    pinned = json.loads(again.read_text())
+    assert pinned["latency_source"] == str(first) and measured["latency_source"] == "measured"
+    assert pinned["latency_ms"] == measured["latency_ms"]
+    assert pinned["scenarios"] == measured["scenarios"] and pinned["summary"] == measured["summary"]
+    assert cli_main([*base, "--latency", str(tmp_path / "slower.json"), "--json", str(again)]) == 0
+    computes = [[r["compute_ms_per_s"] for r in json.loads(f.read_text())["scenarios"] if r["policy"] == "static"]
+                for f in (first, again)]
+    assert computes[1] == pytest.approx([3 * c for c in computes[0]], rel=0.01)  # static's actions do not move
+
+
+@pytest.mark.parametrize(("content", "expected"), [
+    ("{", "not JSON"),
+    ('{"latency_ms": {"960x540": {"forward_ms": 1, "attribution_ms": 2}}}', "latency_ms.640x360: expected"),
+    ('{"640x360": {"forward_ms": 0, "attribution_ms": 2}}', "latency_ms.640x360: expected"),
+    ("[1, 2]", "expected an object"),
+])
+def test_bad_latency_file_is_a_clear_error(profile_path: Path, trained: Path, tmp_path: Path, capsys, content: str,
+                                           expected: str) -> None:
+    bad = tmp_path / "lat.json"
+    bad.write_text(content)
+    code = cli_main(["bench", "scenarios", "--random-detector", "--profile", str(profile_path), "--table",
+                     str(trained), "--latency", str(bad)])
+    err = capsys.readouterr().err
+    assert code == 2 and f"{bad}: " in err and expected in err and "Traceback" not in err
+
+
 def test_bench_without_table_is_a_clear_error(profile_path: Path, tmp_path: Path, capsys) -> None:
     code = cli_main(["bench", "scenarios", "--profile", str(profile_path), "--table", str(tmp_path / "none.npz")])
     assert code == 2

@@ -32,6 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--random-detector", action="store_true",
                         help="randomly initialised detector instead of the checkpoint (smoke tests only)")
     parser.add_argument("--latency-repeats", type=int, help="timed calls per resolution (default 5, quick 2)")
+    parser.add_argument("--latency", type=Path, metavar="FILE",
+                        help="use the detector latency of a past run (its --json result) instead of measuring it: "
+                             "repeats that run's compute figures and load states")
     parser.add_argument("--progress", action="store_true", help="show a progress bar")
 
 
@@ -55,6 +58,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     start = time.monotonic()
     profile = load_profile(args.profile)
     table = _table_path(args)
+    resolutions = rgb_resolutions(controller_for(profile, "static"))
+    pinned = lat.load(args.latency, resolutions) if args.latency is not None else None  # a bad file fails first
     detector = load_detector(profile, args.weights, args.random_detector)
     if args.log is not None:
         from respecd.experiment.logbench import prepare_log
@@ -64,7 +69,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         evaluator, pieces, frames_for, extra = _prepare_sim(args, profile, detector)
     rollout = Rollout(profile, evaluator, {}, args.samples_per_s)
     repeats = args.latency_repeats or (2 if args.quick else 5)
-    rollout.latency = lat.measure(detector, frames_for, rgb_resolutions(controller_for(profile, "static")), repeats)
+    rollout.latency = pinned or lat.measure(detector, frames_for, resolutions, repeats)
     bar = _bar(args, 3 * sum(max(1, int(round(p.duration_s / rollout.period))) for p in pieces))
     try:
         result = run_all(profile, rollout, pieces, table, (lambda p, r: bar.update()) if bar else None)
@@ -73,7 +78,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             bar.close()
         evaluator.cache.close()
     result.update(extra)
-    result.update(latency_ms=lat.to_json(rollout.latency), table=str(table), detector_fingerprint=evaluator.fingerprint,
+    result.update(latency_ms=lat.to_json(rollout.latency), latency_source=str(args.latency or "measured"),
+                  table=str(table), detector_fingerprint=evaluator.fingerprint,
                   cache={"hits": evaluator.cache.hits, "misses": evaluator.cache.misses},
                   wall_s=round(time.monotonic() - start, 1))
     _write_outputs(args, result)

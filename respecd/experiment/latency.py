@@ -9,12 +9,15 @@ The median over repeated calls resists the other processes sharing the CPU.
 
 from __future__ import annotations
 
+import json
 import statistics
 import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
+from respecd.errors import InputError
 from respecd.experiment.frames import frame_id, render
 from respecd.messages import Frame, SensorConfig
 from respecd.sim.world import World
@@ -63,3 +66,30 @@ def sim_frames(world: World, inputs: tuple[str, ...], t: float = 5.0) -> Callabl
 def to_json(table: dict[tuple[int, int], Latency]) -> dict[str, dict[str, float]]:
     return {f"{w}x{h}": {"forward_ms": 1000 * v.forward_s, "attribution_ms": 1000 * v.attribution_s}
             for (w, h), v in table.items()}
+
+
+def load(path: Path, resolutions: Iterable[tuple[int, int]]) -> dict[tuple[int, int], Latency]:
+    """A latency table from ``path``: a ``bench scenarios --json`` result (its ``latency_ms``)
+    or that mapping alone. Pinning the latency of a past run makes a rerun repeat its compute
+    figures and, through the load factor, its actions; measured latency moves between runs.
+    """
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as err:
+        raise InputError(f"{path}: cannot read the latency file ({err.strerror or err})") from err
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise InputError(f"{path}: not JSON ({err})") from err
+    table = doc.get("latency_ms", doc) if isinstance(doc, dict) else None
+    if not isinstance(table, dict):
+        raise InputError(f"{path}: expected an object with 'latency_ms' or 'WxH' keys")
+    out = {}
+    for w, h in resolutions:
+        key = f"{w}x{h}"
+        entry = table.get(key)
+        values = [entry.get(k) for k in ("forward_ms", "attribution_ms")] if isinstance(entry, dict) else []
+        if len(values) != 2 or not all(isinstance(v, int | float) and not isinstance(v, bool) and v > 0
+                                       for v in values):
+            raise InputError(f"{path}: latency_ms.{key}: expected {{forward_ms: >0, attribution_ms: >0}} "
+                             f"(got {entry!r})")
+        out[(w, h)] = Latency(values[0] / 1000.0, max(values[1], values[0]) / 1000.0)
+    return out
