@@ -28,6 +28,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--random-detector", action="store_true",
                         help="randomly initialised detector instead of the checkpoint (smoke tests only)")
     parser.add_argument("--latency-repeats", type=int, default=3, help="timed calls per resolution (median)")
+    parser.add_argument("--latency", type=Path, metavar="FILE",
+                        help="use the detector latency of a `bench scenarios --json` result instead of measuring "
+                             "it (the compute and latency terms of the reward, and the load factor, then repeat)")
     parser.add_argument("--optimistic", action="store_true",
                         help="save never-tried actions at their initial value (default: below the state's "
                              "learned values, so exploiting only takes actions it has tried)")
@@ -55,13 +58,14 @@ def main(args: argparse.Namespace) -> int:
     _check(args)
     profile = load_profile(args.profile)
     out = args.out or table_path(resolve_state_dir(args.state_dir), profile.controller.table_file, profile.name)
+    probe = controller_for(profile, "learn")
+    pinned = lat.load(args.latency, rgb_resolutions(probe)) if args.latency is not None else None
     detector = load_detector(profile, args.weights, args.random_detector)
     evaluator = make_evaluator(detector, profile, not args.no_cache, args.cache_dir)
-    probe = controller_for(profile, "learn")
     rollout = Rollout(profile, evaluator, {}, args.samples_per_s)
     world = rollout.world(Piece("good-light-static", 0, 10.0))
-    rollout.latency = lat.measure(detector, lat.sim_frames(world, evaluator.inputs), rgb_resolutions(probe),
-                                  args.latency_repeats)
+    rollout.latency = pinned or lat.measure(detector, lat.sim_frames(world, evaluator.inputs), rgb_resolutions(probe),
+                                            args.latency_repeats)
     print("latency (ms):", {k: round(v["forward_ms"]) for k, v in lat.to_json(rollout.latency).items()})
     table = probe.table
     history: list[float] = []
@@ -77,14 +81,14 @@ def main(args: argparse.Namespace) -> int:
         bar.set_postfix(reward=f"{result.episode_reward[-1]:.3f}", eps=f"{result.table.epsilon:.3f}",
                         hit=f"{cache.hits / total:.0%}")
         bar.update()
-        save_table(out, result.table, result.layout, _info(profile, args, result, evaluator))
+        save_table(out, result.table, result.layout, _info(profile, args, result, evaluator, rollout))
 
     try:
         result = train(profile, rollout, settings, table, progress, history)
     finally:
         bar.close()
         evaluator.cache.close()
-    info = _info(profile, args, result, evaluator)
+    info = _info(profile, args, result, evaluator, rollout)
     if not args.optimistic:
         info["conservative_fill"] = conservative(result.table, 0 if probe.space.mode == "moves" else None)
     save_table(out, result.table, result.layout, info)
@@ -95,9 +99,12 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _info(profile, args, result, evaluator) -> dict:  # type: ignore[no-untyped-def]
+def _info(profile, args, result, evaluator, rollout) -> dict:  # type: ignore[no-untyped-def]
+    from respecd.experiment.latency import to_json
+
     return {"profile": profile.name, "policy": "learn", "trainer": "respecd train-policy",
             "episodes": len(result.episode_reward), "decisions": result.decisions,
             "episode_reward": [round(r, 5) for r in result.episode_reward],
             "detector_fingerprint": evaluator.fingerprint, "seeds": args.seeds, "seed": args.seed,
-            "weights": args.weights or profile.perception.weights}
+            "weights": args.weights or profile.perception.weights,
+            "latency_ms": to_json(rollout.latency), "latency_source": str(args.latency or "measured")}

@@ -73,6 +73,25 @@ def test_training_updates_and_saves_the_table(trained: Path, profile_path: Path)
     assert np.array_equal(controller.table.q, q) and controller.policy == "exploit"
 
 
+def test_train_policy_with_a_pinned_latency_learns_the_same_table_twice(profile_path: Path, tmp_path: Path,
+                                                                       monkeypatch) -> None:
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    latency = tmp_path / "lat.json"
+    latency.write_text(json.dumps({"latency_ms": {"640x360": {"forward_ms": 40.0, "attribution_ms": 90.0}}}))
+    tables = []
+    for name in ("a", "b"):
+        out = tmp_path / f"{name}.npz"
+        assert cli_main(["train-policy", "--random-detector", "--profile", str(profile_path), "--episodes", "1",
+                         "--seeds", "1", "--min-s", "2", "--max-s", "2", "--latency", str(latency),
+                         "--out", str(out)]) == 0
+        tables.append(read_table(out))
+        assert out.with_suffix(".curve.png").stat().st_size > 1000
+    (meta_a, q_a, visits_a), (meta_b, q_b, visits_b) = tables
+    assert meta_a["latency_source"] == str(latency)
+    assert meta_a["latency_ms"]["640x360"] == {"forward_ms": pytest.approx(40.0), "attribution_ms": pytest.approx(90.0)}
+    assert meta_a["updates"] > 0 and np.array_equal(q_a, q_b) and np.array_equal(visits_a, visits_b)
+
+
 def test_rl_table_for_another_profile_is_refused(trained: Path) -> None:
     with pytest.raises(InputError, match="another state/action space"):
         rl_controller(load_profile("builtin:sim-rover"), trained)
