@@ -16,7 +16,7 @@ from respecd.messages import SensorConfig
 
 
 def test_reward_terms_hand_computed() -> None:
-    w = RewardWeights(alpha=2.0, kappa=0.1, beta=0.5, gamma=3.0, delta=0.25)
+    w = RewardWeights(alpha=2.0, confidence_level=0.0, kappa=0.1, beta=0.5, gamma=3.0, delta=0.25)
     terms = reward_terms(w, conf_prev=0.2, conf_now=0.25, power_w=4.0, latency_s=0.1, switched=True)
     assert terms["quality"] == pytest.approx(2.0 * 0.05)
     assert terms["power"] == pytest.approx(-2.0)
@@ -46,7 +46,7 @@ def test_power_model_per_resolution_and_rate() -> None:
 
 
 def test_watkins_update_hand_computed() -> None:
-    table = QTable(3, 2, Learning(learning_rate=0.5, discount=0.9, init="zero"))
+    table = QTable(3, 2, Learning(learning_rate=0.5, discount=0.9, init="zero", step_size="constant"))
     table.q[1] = [0.0, 2.0]
     error = table.update(0, 1, reward=1.0, next_state=1)
     # Q(0,1) = 0 + 0.5 * (1 + 0.9 * max(0, 2) - 0) = 1.4
@@ -240,7 +240,7 @@ def test_staleness_costs_by_motion_bin() -> None:
     assert reward_terms(w, **base, motion_bin=0)["staleness"] == 0.0
     assert reward_terms(w, **base, motion_bin=1)["staleness"] == pytest.approx(-0.2)
     fast = reward_terms(w, **base, motion_bin=2)
-    assert fast["staleness"] == pytest.approx(-0.6) and fast["reward"] == pytest.approx(-0.6)
+    assert fast["staleness"] == pytest.approx(-0.6) and fast["reward"] == pytest.approx(-0.6 + 0.8 * 0.5)
     assert fast["delay_s"] == 0.2
     with pytest.raises(ValueError, match="staleness"):
         RewardWeights(staleness=(0.0, -1.0, 1.0))
@@ -258,6 +258,16 @@ def test_controller_charges_a_slow_camera_only_when_the_scene_moves() -> None:
     assert fast.terms["staleness"] == pytest.approx(-4.0 * 0.5)
 
 
+def test_default_reward_is_the_papers_change_term_as_a_level() -> None:
+    """alpha x (C_t - C_t-1) = alpha (1 - discount) C_t + discount x alpha C_t - alpha C_t-1: the default
+    charges the level with the weight that leaves the same optimal policy, and nothing for the change."""
+    weights, discount = RewardWeights(), Learning().discount
+    assert weights.alpha == 0.0 and weights.confidence_level == pytest.approx(4.0 * (1 - discount))
+    up = reward_terms(weights, conf_prev=0.2, conf_now=0.7, power_w=0.0, latency_s=0.0, switched=False)
+    same = reward_terms(weights, conf_prev=0.7, conf_now=0.7, power_w=0.0, latency_s=0.0, switched=False)
+    assert up["quality"] == 0.0 and up["reward"] == same["reward"] == pytest.approx(0.8 * 0.7)
+
+
 def test_reward_terms_do_not_shadow_log_record_keys() -> None:
     # every term goes into the `decision` log line as a keyword: a term named like one of
     # structlog's own keys would be silently overwritten there
@@ -266,10 +276,30 @@ def test_reward_terms_do_not_shadow_log_record_keys() -> None:
     assert terms["conf_level"] == pytest.approx(0.5)
 
 
+def test_visit_step_size_averages_the_first_targets_then_floors_at_the_learning_rate() -> None:
+    table = QTable(1, 1, Learning(learning_rate=0.25, discount=0.0, init="optimistic", optimistic_value=1.0))
+    targets = [-1.0, -0.5, 0.0, -0.3, 2.0]
+    for reward in targets:
+        table.update(0, 0, reward, next_state=0)  # discount 0: the target is the reward
+    mean_of_four = sum(targets[:4]) / 4  # steps 1, 1/2, 1/3, 1/4: the optimistic 1.0 is gone after the first
+    assert table.q[0, 0] == pytest.approx(mean_of_four + 0.25 * (2.0 - mean_of_four))  # then the 0.25 floor
+
+
+@pytest.mark.parametrize(("step_size", "picked"), [("visits", 0), ("constant", 1)])
+def test_frozen_table_prefers_what_it_learned_not_what_it_tried_least(step_size: str, picked: int) -> None:
+    """With an optimistic start and a constant step, a cell tried once keeps 80 % of its
+    optimistic value and outbids a cell learned over twenty updates; counting visits does not."""
+    table = QTable(1, 2, Learning(learning_rate=0.2, discount=0.0, step_size=step_size))  # optimistic 1.0
+    for _ in range(20):
+        table.update(0, 0, reward=-0.1, next_state=0)
+    table.update(0, 1, reward=-0.3, next_state=0)  # worse, and tried once
+    assert table.greedy_tried(0) == picked
+
+
 def test_factored_update_moves_each_blocks_chosen_cell() -> None:
     from respecd.control.qlearning import FactoredQTable
 
-    table = FactoredQTable(2, (3, 2), Learning(learning_rate=0.5, discount=0.9, init="zero"))
+    table = FactoredQTable(2, (3, 2), Learning(learning_rate=0.5, discount=0.9, init="zero", step_size="constant"))
     assert table.q.shape == (2, 5) and table.cells(table.encode([2, 1])) == [2, 1]
     assert table.greedy_tried(0) is None  # nothing learned in state 0 yet
     table.q[1] = [0.0, 4.0, 1.0, 2.0, -1.0]  # next state: block 0 best 4, block 1 best 2

@@ -63,12 +63,19 @@ class Thresholds(StrictModel):
 
 
 class RewardWeights(StrictModel):
-    """r = alpha*clip(dConfAgg, -kappa, kappa) - beta*P - gamma*L - staleness[motion]*D - delta*[switch].
+    """r = alpha*clip(dConfAgg, -kappa, kappa) + confidence_level*ConfAgg - beta*P - gamma*L
+    - staleness[motion]*D - delta*[switch].
 
     P includes the detector's compute; D is the contribution-weighted sensing delay.
     """
 
-    alpha: float = Field(4.0, ge=0, le=1000, description="Weight of the ConfAgg change (quality gain).")
+    alpha: float = Field(
+        0.0,
+        ge=0,
+        le=1000,
+        description="Weight of the ConfAgg change (the paper's quality gain; the paper's reward: 4 with "
+        "confidence_level 0). Default 0: the level term below carries the same incentive with less noise.",
+    )
     kappa: float = Field(0.25, gt=0, le=1, description="Clip of the ConfAgg change per decision.")
     beta: float = Field(0.05, ge=0, le=1000, description="Weight of power, per watt.")
     compute_w: float = Field(
@@ -89,10 +96,13 @@ class RewardWeights(StrictModel):
         "moves and how much the detector relies on it. (0, 0, 0) is the paper's reward.",
     )
     confidence_level: float = Field(
-        0.0,
+        0.8,
         ge=0,
         le=1000,
-        description="Weight of the ConfAgg level itself (0 = the paper's reward, which rewards only its change).",
+        description="Weight of the ConfAgg level. alpha x (C_t - C_t-1) equals alpha x (1 - discount) x C_t plus a "
+        "potential-based shaping term that leaves the optimal policy unchanged, so 0.8 = 4 x (1 - 0.8) is the "
+        "paper's alpha = 4 as a level; its per-decision noise is about 7x smaller and it gives nothing for a "
+        "switch up that the switch back down takes away. 0 with alpha > 0: the paper's reward.",
     )
 
     @model_validator(mode="after")
@@ -105,7 +115,15 @@ class RewardWeights(StrictModel):
 class Learning(StrictModel):
     """Watkins Q-learning hyper-parameters."""
 
-    learning_rate: float = Field(0.2, gt=0, le=1, description="Step size of the Q update.")
+    learning_rate: float = Field(0.2, gt=0, le=1, description="Step size of the Q update (its floor with "
+                                 "step_size 'visits').")
+    step_size: Literal["visits", "constant"] = Field(
+        "visits",
+        description="visits: a cell's n-th update uses max(learning_rate, 1/n), so its first update replaces the "
+        "initial value and its first 1/learning_rate updates are averaged; constant: learning_rate always. With "
+        "optimistic init and a constant step, a cell updated twice still holds (1 - learning_rate)^2 of the "
+        "optimistic value, and a frozen table prefers the actions it tried least.",
+    )
     discount: float = Field(0.8, ge=0, lt=1, description="Discount of the next state's best value.")
     epsilon_start: float = Field(0.5, ge=0, le=1, description="Exploration probability at the first step.")
     epsilon_min: float = Field(0.05, ge=0, le=1, description="Floor the decay stops at.")

@@ -2,6 +2,11 @@
 
     Q(s, a) ← Q(s, a) + lr · (r + discount · max_a' Q(s', a') − Q(s, a))
 
+The step size lr is ``max(learning_rate, 1/n)`` for a cell's n-th update (``step_size:
+visits``): the first update replaces the initial value, so an optimistic start drives
+exploration without staying in the values a frozen table acts on. ``constant`` keeps
+``learning_rate`` throughout.
+
 ε decays geometrically after every update down to ``epsilon_min``. Greedy ties are broken
 at random (with the seeded generator), so a zero- or optimistically-initialised table does
 not always pick action 0. ``visits`` counts updates per (state, action) for ``policy show``.
@@ -51,11 +56,16 @@ class QTable:
         """One Watkins update; returns the TD error."""
         target = reward + self.learning.discount * self._row_max(next_state)
         error = target - float(self.q[state, action])
-        self.q[state, action] += self.learning.learning_rate * error
         self.visits[state, action] += 1
+        self.q[state, action] += self.step(int(self.visits[state, action])) * error
         self.updates += 1
         self.epsilon = max(self.learning.epsilon_min, self.epsilon * self.learning.epsilon_decay)
         return error
+
+    def step(self, n: int) -> float:
+        """The step size of a cell's ``n``-th update."""
+        rate = self.learning.learning_rate
+        return max(rate, 1.0 / n) if self.learning.step_size == "visits" else rate
 
     def _row_max(self, state: int) -> float:
         row = self.q[state]
@@ -139,14 +149,14 @@ class FactoredQTable(QTable):
 
     def update(self, state: int, action: int, reward: float, next_state: int) -> float:
         """The Watkins update of every block's chosen cell; returns the mean TD error."""
-        lr, discount = self.learning.learning_rate, self.learning.discount
-        row, following = self.q[state], self.q[next_state].tolist()
+        discount = self.learning.discount
+        row, following, visits = self.q[state], self.q[next_state].tolist(), self.visits[state]
         total = 0.0
         for (start, end), cell in zip(self._spans, self.cells(action), strict=True):
             column = start + cell
             error = reward + discount * max(following[start:end]) - float(row[column])
-            row[column] += lr * error
-            self.visits[state, column] += 1
+            visits[column] += 1
+            row[column] += self.step(int(visits[column])) * error
             total += error
         self.updates += 1
         self.epsilon = max(self.learning.epsilon_min, self.epsilon * self.learning.epsilon_decay)

@@ -1,4 +1,4 @@
-"""The reward: r = α·clip(ConfAgg_t − ConfAgg_{t−1}, −κ, κ) − β·P_t − γ·L_t − σ_m·D_t − δ·[switch].
+"""The reward: r = α·clip(ConfAgg_t − ConfAgg_{t−1}, −κ, κ) + λ·ConfAgg_t − β·P_t − γ·L_t − σ_m·D_t − δ·[switch].
 
 Every term is returned so that each decision's log line shows why it was good or bad.
 P is the board power from the rails when readable, else the profile's per-sensor power
@@ -7,7 +7,14 @@ model over what the drivers really applied plus the detector's compute power (``
 agent keep the detector running flat out for free. The switch indicator is "the configuration
 changed": in product and factored mode that is exactly [a_t ≠ a_{t−1}]; in moves mode repeating "thermal
 rate up" is a switch while "keep" is not, which is what costs the sensors a re-arm.
-An optional ``confidence_level`` term (default 0, the paper's reward) adds the ConfAgg level.
+
+Quality enters as the ConfAgg level λ (``confidence_level``, default 0.8), not the paper's
+change α (``alpha``, default 0). With discount g, α·(C_t − C_{t−1}) = α(1−g)·C_t + [g·αC_t −
+αC_{t−1}], and the bracket is potential-based shaping (Ng, Harada & Russell 1999), which does
+not change the optimal policy when C is a function of the state; λ = α(1−g) = 4 × 0.2 keeps
+the paper's incentive. The change form is noisier (two windows' noise, ×α instead of ×λ:
+about 7× the standard deviation) and, since the table's state does not hold C_{t−1}, pays a
+switch up to a richer configuration in one state and charges the switch back in another.
 
 D is the sensing delay: the mean age of a scene change when its first frame is taken, half a
 frame period, averaged over the detector's inputs by their contribution. Its weight σ_m
