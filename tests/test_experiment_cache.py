@@ -11,7 +11,7 @@ import yaml
 from respecd.config import load_profile
 from respecd.experiment.cache import OutcomeCache, fingerprint, model_hash, outcome_key
 from respecd.experiment.frames import frame_id, frame_time, previous, render
-from respecd.experiment.outcomes import Evaluator, world_key
+from respecd.experiment.outcomes import Evaluator
 from respecd.experiment.rollout import Piece, Rollout
 from respecd.experiment.setup import load_detector, perception_identity
 from respecd.messages import SensorConfig
@@ -119,6 +119,29 @@ def test_outcome_is_computed_once_and_replayed(profile, tmp_path: Path) -> None:
     assert np.array_equal(again.boxes, first.boxes) and again.conf_agg == first.conf_agg
     cache.close()
     reopened = OutcomeCache(tmp_path / "o.sqlite")  # and from disk, in a later run
-    key = outcome_key(fp, world_key(world), [f.key() for f in evaluator.frame_ids(configs, 2.05).values()], True)
-    assert reopened.get(key) == first.to_json()
+    ids = evaluator.frame_ids(configs, 2.05)
+    assert reopened.get(evaluator.key(world, ids, evaluator.previous_ids(ids, configs), True)) == first.to_json()
     reopened.close()
+
+
+def test_motion_does_not_depend_on_which_rate_asked_for_a_frame_first(profile) -> None:
+    """At t = 3.0 s a thermal camera at 5 Hz and one at 10 Hz deliver the same frame, but the
+    motion cue compares it with the frame 0.2 s or 0.1 s before: two outcomes, whatever the
+    order in which they are asked for."""
+    detector = load_detector(profile, random_init=True)
+    fp = fingerprint(model_hash(detector.model), perception_identity(detector, profile))
+
+    def configs(thermal_hz: float) -> dict[str, SensorConfig]:
+        return {"rgb": SensorConfig("rgb", rate_hz=1.0, resolution=(640, 360)),
+                "thermal": SensorConfig("thermal", rate_hz=thermal_hz, resolution=(160, 120))}
+
+    motion = {}
+    for order in ((5.0, 10.0), (10.0, 5.0)):
+        evaluator = Evaluator(detector, OutcomeCache(None), fp)
+        world = Rollout(profile, evaluator, {}).world(Piece("good-light-moving", 2, 5.0))
+        for hz in order:
+            motion[order, hz] = evaluator.outcome(world, configs(hz), 3.0, attribute=False).motion
+        assert evaluator.cache.misses == 2
+    assert motion[(5.0, 10.0), 5.0] == motion[(10.0, 5.0), 5.0]
+    assert motion[(5.0, 10.0), 10.0] == motion[(10.0, 5.0), 10.0]
+    assert motion[(5.0, 10.0), 5.0] != motion[(5.0, 10.0), 10.0]  # a person walked further in 0.2 s

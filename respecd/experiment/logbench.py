@@ -15,7 +15,8 @@ rover carry it): the newest logged RGB frame at ``t`` gives the truth at ``t``, 
 decimated, stale frame is scored against where people really are. Without it mAP is null.
 Scenarios are the log's own segments (``meta["scenario"]`` of the RGB frames), or the whole
 log as one piece. Outcomes are kept in memory only (a log's frames are not reproducible
-from a seed), keyed by the logged frames and the resolution.
+from a seed), keyed by the logged frames (with each imager's previous frame, which the motion
+cue compares it with) and the resolution.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ import numpy as np
 from respecd.errors import InputError
 from respecd.experiment.cache import OutcomeCache, outcome_key
 from respecd.experiment.frames import frame_time
-from respecd.experiment.outcomes import Outcome, detect
+from respecd.experiment.outcomes import MOTION_IMAGERS, Outcome, detect
 from respecd.experiment.rollout import Piece
 from respecd.messages import Frame, SensorConfig
 from respecd.record import codec
@@ -140,17 +141,16 @@ class LogEvaluator:
                  if m in self.inputs and c.enabled and m in self.frames.times}
         picks = {m: i for m, i in picks.items() if i is not None}
         res = {m: configs[m].resolution for m in picks}
-        key = outcome_key(self.fingerprint, "", [f"{m}:{i}:{res[m]}" for m, i in picks.items()], attribute)
+        before = {m: self._pick(m, configs[m], t_log - 1.0 / configs[m].rate_hz) for m in MOTION_IMAGERS if m in picks}
+        before = {m: j for m, j in before.items() if j is not None}
+        parts = [f"{m}:{i}:{res[m]}" for m, i in picks.items()] + [f"before {m}:{j}" for m, j in before.items()]
+        key = outcome_key(self.fingerprint, "", parts, attribute)  # the motion cue's previous frame is in the key
         cached = self.cache.get(key)
         if cached is not None:
             return Outcome.from_json(cached)
         start = time.perf_counter()
         frames = {m: _resize(self.frames.frame(m, i), res[m]) for m, i in picks.items()}
-        prev = {}
-        for m in ("rgb", "thermal"):
-            j = self._pick(m, configs[m], t_log - 1.0 / configs[m].rate_hz) if m in picks else None
-            if j is not None:
-                prev[m] = _resize(self.frames.frame(m, j), res[m])
+        prev = {m: _resize(self.frames.frame(m, j), res[m]) for m, j in before.items()}
         result = detect(self.detector, frames, prev, attribute)
         self.inference_s += time.perf_counter() - start
         self.cache.put(key, result.to_json())

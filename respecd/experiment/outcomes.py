@@ -78,6 +78,18 @@ class Evaluator:
         """The newest frame of every enabled detector input at ``t`` (``slot``: static scene)."""
         return {m: frame_id(c, t, slot) for m, c in configs.items() if m in self.inputs and c.enabled}
 
+    @staticmethod
+    def previous_ids(ids: dict[str, FrameId], configs: Mapping[str, SensorConfig]) -> dict[str, FrameId]:
+        """The frame before each imager's current one: what the motion cue compares it with."""
+        return {m: previous(ids[m], configs[m].rate_hz) for m in MOTION_IMAGERS if m in ids}
+
+    def key(self, world: World, ids: dict[str, FrameId], before: dict[str, FrameId], attribute: bool) -> str:
+        """The cache key of an outcome: every frame it was computed from. The previous frames
+        count because the imager's rate sets them and a thermal frame id does not hold the
+        rate: without them the first rate to ask for a frame set its motion for every rate."""
+        parts = [f.key() for f in ids.values()] + [f"before {f.key()}" for f in before.values()]
+        return outcome_key(self.fingerprint, world_key(world), parts, attribute)
+
     def outcome(self, world: World, configs: Mapping[str, SensorConfig], t: float, attribute: bool,
                 slot: int | None = None) -> Outcome:
         """The detector's outcome at instant ``t`` for sensors in ``configs`` (by modality).
@@ -85,12 +97,13 @@ class Evaluator:
         ``slot``: in a static scene, the noise slot standing in for the frame time.
         """
         ids = self.frame_ids(configs, t, slot)
-        key = outcome_key(self.fingerprint, world_key(world), [f.key() for f in ids.values()], attribute)
+        before = self.previous_ids(ids, configs)
+        key = self.key(world, ids, before, attribute)
         cached = self.cache.get(key)
         if cached is not None:
             return Outcome.from_json(cached)
         start = time.perf_counter()
-        result = self._compute(world, ids, configs, attribute)
+        result = self._compute(world, ids, before, attribute)
         self.inference_s += time.perf_counter() - start
         self.cache.put(key, result.to_json())
         return result
@@ -105,10 +118,10 @@ class Evaluator:
                 self._frames.popitem(last=False)
         return frame
 
-    def _compute(self, world: World, ids: dict[str, FrameId], configs: Mapping[str, SensorConfig],
+    def _compute(self, world: World, ids: dict[str, FrameId], before: dict[str, FrameId],
                  attribute: bool) -> Outcome:
         frames = {m: self._render(world, fid) for m, fid in ids.items()}
-        prev = {m: self._render(world, previous(ids[m], configs[m].rate_hz)) for m in MOTION_IMAGERS if m in ids}
+        prev = {m: self._render(world, fid) for m, fid in before.items()}
         return detect(self.detector, frames, prev, attribute)
 
     # the hooks a rollout uses to reach its scenes (a recorded log provides the same ones)
