@@ -66,7 +66,8 @@ def main(args: argparse.Namespace) -> int:
     world = rollout.world(Piece("good-light-static", 0, 10.0))
     rollout.latency = pinned or lat.measure(detector, lat.sim_frames(world, evaluator.inputs), rgb_resolutions(probe),
                                             args.latency_repeats)
-    print("latency (ms):", {k: round(v["forward_ms"]) for k, v in lat.to_json(rollout.latency).items()})
+    latency_ms = lat.to_json(rollout.latency)
+    print("latency (ms):", {k: round(v["forward_ms"]) for k, v in latency_ms.items()})
     table = probe.table
     history: list[float] = []
     if args.resume and table is not None and load_into(out, table, probe.layout()):
@@ -81,14 +82,14 @@ def main(args: argparse.Namespace) -> int:
         bar.set_postfix(reward=f"{result.episode_reward[-1]:.3f}", eps=f"{result.table.epsilon:.3f}",
                         hit=f"{cache.hits / total:.0%}")
         bar.update()
-        save_table(out, result.table, result.layout, _info(profile, args, result, evaluator, rollout))
+        save_table(out, result.table, result.layout, _info(profile, args, result, evaluator, latency_ms))
 
     try:
         result = train(profile, rollout, settings, table, progress, history)
     finally:
         bar.close()
         evaluator.cache.close()
-    info = _info(profile, args, result, evaluator, rollout)
+    info = _info(profile, args, result, evaluator, latency_ms)
     if not args.optimistic:
         info["conservative_fill"] = conservative(result.table, 0 if probe.space.mode == "moves" else None)
     save_table(out, result.table, result.layout, info)
@@ -99,12 +100,10 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _info(profile, args, result, evaluator, rollout) -> dict:  # type: ignore[no-untyped-def]
-    from respecd.experiment.latency import to_json
-
+def _info(profile, args, result, evaluator, latency_ms) -> dict:  # type: ignore[no-untyped-def]
     return {"profile": profile.name, "policy": "learn", "trainer": "respecd train-policy",
             "episodes": len(result.episode_reward), "decisions": result.decisions,
             "episode_reward": [round(r, 5) for r in result.episode_reward],
             "detector_fingerprint": evaluator.fingerprint, "seeds": args.seeds, "seed": args.seed,
             "weights": args.weights or profile.perception.weights,
-            "latency_ms": to_json(rollout.latency), "latency_source": str(args.latency or "measured")}
+            "latency_ms": latency_ms, "latency_source": str(args.latency or "measured")}
