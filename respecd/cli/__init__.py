@@ -16,21 +16,21 @@ from respecd.errors import ConfigError, InputError
 
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
-    "check-config": ("respecd.cmd_config", "validate profiles; print FILE:LINE: problems, exit 2 if any"),
-    "schema": ("respecd.cmd_schema", "print the profile JSON Schema (for yaml-language-server)"),
-    "bench": ("respecd.cmd_bench", "run a benchmark, print figures, write JSON"),
-    "train": ("respecd.cmd_train", "train the fusion detector on the simulated rover or an LLVIP-layout folder"),
-    "eval": ("respecd.cmd_eval", "mAP with/without each modality and mean contributions per condition"),
-    "radar-profile": ("respecd.cmd_radar_profile", "print the radar chirp cfg and its four figures"),
-    "radar-dump": ("respecd.cmd_radar_dump", "decode a recorded radar data-port capture, one line per frame"),
-    "log": ("respecd.cmd_log", "inspect a recorded MCAP session log: `log info LOG`"),
-    "train-policy": ("respecd.cmd_train_policy", "train the Q-table on the simulated scenarios (cached outcomes)"),
-    "policy": ("respecd.cmd_policy", "print a learned Q-table as a policy: `policy show FILE`"),
+    "check-config": ("respecd.cli.check_config", "validate profiles; print FILE:LINE: problems, exit 2 if any"),
+    "schema": ("respecd.cli.schema", "print the profile JSON Schema (for yaml-language-server)"),
+    "bench": ("respecd.cli.bench", "run a benchmark, print figures, write JSON"),
+    "train": ("respecd.cli.train", "train the fusion detector on the simulated rover or an LLVIP-layout folder"),
+    "eval": ("respecd.cli.eval", "mAP with/without each modality and mean contributions per condition"),
+    "radar-profile": ("respecd.cli.radar_profile", "print the radar chirp cfg and its four figures"),
+    "radar-dump": ("respecd.cli.radar_dump", "decode a recorded radar data-port capture, one line per frame"),
+    "log": ("respecd.cli.log", "inspect a recorded MCAP session log: `log info LOG`"),
+    "train-policy": ("respecd.cli.train_policy", "train the Q-table on the simulated scenarios (cached outcomes)"),
+    "policy": ("respecd.cli.policy", "print a learned Q-table as a policy: `policy show FILE`"),
 }
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from respecd.cmd_run import add_arguments as add_run_arguments
+    from respecd.cli.run import add_arguments as add_run_arguments
 
     parser = argparse.ArgumentParser(prog="respecd", description="Adaptive multispectral sensing daemon (ReSPEC).", allow_abbrev=False)  # noqa: E501 (`bench scenarios --log` is not an abbreviation of --log-level)
     add_run_arguments(parser)
@@ -44,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    module_name = COMMANDS[args.command][0] if args.command else "respecd.cmd_run"
+    module_name = COMMANDS[args.command][0] if args.command else "respecd.cli.run"
     try:
         return int(importlib.import_module(module_name).main(args) or 0)
     except (ConfigError, InputError) as err:
@@ -58,6 +58,3 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
         return 141
 
-
-if __name__ == "__main__":
-    sys.exit(main())
