@@ -9,11 +9,11 @@ import pytest
 import yaml
 
 from respecd.config import load_profile
-from respecd.experiment.cache import OutcomeCache, fingerprint, model_hash, outcome_key
-from respecd.experiment.frames import frame_id, frame_time, previous, render
-from respecd.experiment.outcomes import Evaluator
-from respecd.experiment.rollout import Piece, Rollout
-from respecd.experiment.setup import load_detector, perception_identity
+from respecd.lab.experiment.cache import OutcomeCache, fingerprint, model_hash, outcome_key
+from respecd.lab.experiment.frames import frame_id, frame_time, previous, render
+from respecd.lab.experiment.outcomes import Evaluator
+from respecd.lab.experiment.rollout import Piece, Rollout
+from respecd.lab.experiment.setup import load_detector, perception_identity
 from respecd.messages import SensorConfig
 from respecd.sim.config import SimulationConfig
 from respecd.sim.world import World
@@ -57,8 +57,8 @@ def test_fingerprint_covers_the_code_of_every_stored_field() -> None:
     from pathlib import PurePath
 
     from respecd.control import features, imagestats
-    from respecd.experiment import outcomes
-    from respecd.experiment.cache import SOURCE_MODULES
+    from respecd.lab.experiment import outcomes
+    from respecd.lab.experiment.cache import SOURCE_MODULES
 
     fingerprinted = {(package, name) for package, names in SOURCE_MODULES.items() for name in names}
     for module in (features, imagestats, outcomes):

@@ -15,12 +15,12 @@ from respecd.config import load_profile
 from respecd.control.persist import read_table, save_table
 from respecd.control.state import bin3
 from respecd.errors import InputError
-from respecd.experiment import latency as lat
-from respecd.experiment.cache import OutcomeCache
-from respecd.experiment.compare import rl_controller
-from respecd.experiment.rollout import Piece, Rollout, controller_for
-from respecd.experiment.setup import load_detector, make_evaluator
-from respecd.experiment.training import TrainSettings, episode_pieces, train
+from respecd.lab.experiment import latency as lat
+from respecd.lab.experiment.cache import OutcomeCache
+from respecd.lab.experiment.compare import rl_controller
+from respecd.lab.experiment.rollout import Piece, Rollout, controller_for
+from respecd.lab.experiment.setup import load_detector, make_evaluator
+from respecd.lab.experiment.training import TrainSettings, episode_pieces, train
 
 TINY_MODEL = {"rgb_widths": [4, 8, 8, 16, 16], "aux_widths": [4, 8, 8, 16, 16], "neck_widths": [8, 16, 16],
               "reg_max": 4}
@@ -186,7 +186,7 @@ def test_shipped_fallback_loads_read_only(trained: Path, profile_path: Path) -> 
 def test_conservative_fill_prefers_tried_actions_and_keep() -> None:
     from respecd.control.config import Learning
     from respecd.control.qlearning import QTable
-    from respecd.experiment.training import conservative
+    from respecd.lab.experiment.training import conservative
 
     table = QTable(3, 4, Learning(init="optimistic", optimistic_value=1.0))
     table.update(0, 2, -0.5, 1)  # state 0: only action 2 tried, with a negative reward

@@ -82,7 +82,7 @@ def test_no_detection_decays_toward_uniform() -> None:
 
 
 def test_attribution_runs_on_real_llvip_pairs(shared_data) -> None:
-    from respecd.perception.data import llvip_frames
+    from respecd.lab.detector.data import llvip_frames
 
     root = shared_data / "llvip_pairs"
     model, _, _ = _random_detector_input(3)

@@ -10,9 +10,9 @@ import pytest
 import torch
 
 from respecd.cli import main as cli_main
+from respecd.lab.detector.metrics import ImageResult, average_precision, mean_ap
 from respecd.perception import checkpoint
 from respecd.perception.config import ModelSpec
-from respecd.perception.metrics import ImageResult, average_precision, mean_ap
 from respecd.perception.model import FusionNet
 
 TINY = ModelSpec(rgb_widths=(8, 8, 16, 16, 16), aux_widths=(8, 8, 8, 8, 8), neck_widths=(16, 16, 16))

@@ -10,10 +10,10 @@ from importlib import resources
 import numpy as np
 import pytest
 
+from respecd.lab.detector.metrics import iou_matrix
 from respecd.messages import Frame
 from respecd.perception.config import PerceptionConfig
 from respecd.perception.detector import FusionDetector
-from respecd.perception.metrics import iou_matrix
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -65,7 +65,7 @@ def test_detects_at_night_and_thermal_carries_it(detector: FusionDetector) -> No
 
 
 def test_inference_bench_reports_every_resolution(monkeypatch) -> None:
-    from respecd.bench import inference
+    from respecd.lab.bench import inference
 
     monkeypatch.setattr(inference, "RESOLUTIONS", ((640, 360),))  # one size keeps the test short
     args = argparse.Namespace(weights="builtin:sim-rover", repeats=1, threads=1, seed=1)

@@ -10,11 +10,11 @@ import pytest
 import torch
 
 from respecd.cli import main as cli_main
+from respecd.lab.detector.augment import AugmentConfig, augment, collate
+from respecd.lab.detector.data import LlvipSource, Sample, read_voc
+from respecd.lab.detector.train import TrainConfig, train
 from respecd.perception import checkpoint
-from respecd.perception.augment import AugmentConfig, augment, collate
 from respecd.perception.config import ModelSpec, PerceptionConfig
-from respecd.perception.data import LlvipSource, Sample, read_voc
-from respecd.perception.train import TrainConfig, train
 
 TINY = ModelSpec(rgb_widths=(8, 8, 16, 16, 16), aux_widths=(8, 8, 8, 8, 8), neck_widths=(16, 16, 16))
 

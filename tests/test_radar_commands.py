@@ -107,7 +107,7 @@ def test_radar_dump_bad_input_exits_2(tmp_path: Path, capsys: pytest.CaptureFixt
 
 
 def test_bench_drivers_parses_every_real_frame_whole_and_chunked() -> None:
-    from respecd.bench import BENCHES
+    from respecd.lab.bench import BENCHES
 
     bench = importlib.import_module(BENCHES["drivers"])
     parser = argparse.ArgumentParser()

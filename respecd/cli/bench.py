@@ -9,7 +9,7 @@ import platform
 from pathlib import Path
 from typing import Any
 
-from respecd.bench import BENCHES
+from respecd.lab.bench import BENCHES
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -43,10 +43,10 @@ def _resolution(text: str) -> tuple[int, int]:
 def main(args: argparse.Namespace) -> int:
     import torch
 
-    from respecd.perception import report as report_mod
+    from respecd.lab.detector import report as report_mod
+    from respecd.lab.detector.evaluate import evaluate, sim_eval_set
     from respecd.perception.config import PerceptionConfig
     from respecd.perception.detector import FusionDetector
-    from respecd.perception.evaluate import evaluate, sim_eval_set
 
     torch.set_num_threads(args.threads)
     pcfg = PerceptionConfig(weights=args.weights, score_threshold=EVAL_SCORE_THRESHOLD)
@@ -56,7 +56,7 @@ def main(args: argparse.Namespace) -> int:
         samples = sim_eval_set(detector.config, args.frames, size, progress=not args.quiet)
         title = f"Simulated rover, held-out scenes, RGB {size[0]}x{size[1]} ({args.weights})"
     else:
-        from respecd.perception.data import LlvipSource
+        from respecd.lab.detector.data import LlvipSource
 
         root = Path(args.data)
         if not root.is_dir():

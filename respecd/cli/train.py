@@ -34,8 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from respecd.lab.detector.train import TrainConfig, train
     from respecd.perception.config import PerceptionConfig
-    from respecd.perception.train import TrainConfig, train
 
     _check(args)
     cfg = TrainConfig(
@@ -71,8 +71,8 @@ def _check(args: argparse.Namespace) -> None:
 
 def _card_metrics(args: argparse.Namespace, pcfg) -> dict:
     """Held-out sim mAP (all modalities and each one off) and contributions, for the card."""
+    from respecd.lab.detector.evaluate import evaluate, sim_eval_set
     from respecd.perception.detector import FusionDetector
-    from respecd.perception.evaluate import evaluate, sim_eval_set
 
     eval_cfg = pcfg.model_copy(update={"weights": str(args.out), "score_threshold": 0.01})
     detector = FusionDetector.load(eval_cfg)

@@ -50,10 +50,10 @@ def main(args: argparse.Namespace) -> int:
 
     from respecd.config import load_profile
     from respecd.control.persist import load_into, read_table, resolve_state_dir, save_table, table_path
-    from respecd.experiment import latency as lat
-    from respecd.experiment.rollout import Piece, Rollout, controller_for
-    from respecd.experiment.setup import load_detector, make_evaluator, rgb_resolutions
-    from respecd.experiment.training import TrainSettings, conservative, save_curve, train
+    from respecd.lab.experiment import latency as lat
+    from respecd.lab.experiment.rollout import Piece, Rollout, controller_for
+    from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
+    from respecd.lab.experiment.training import TrainSettings, conservative, save_curve, train
 
     _check(args)
     profile = load_profile(args.profile)

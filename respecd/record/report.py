@@ -20,7 +20,7 @@ import numpy as np
 from respecd.messages import Bundle, Decision, Frame, Percept, SensorConfig
 
 IOU_MATCH = 0.5
-MIN_VISIBLE = 0.3  # as respecd.perception.data: a person less visible than this is "ignore" truth
+MIN_VISIBLE = 0.3  # as respecd.lab.detector.data: a person less visible than this is "ignore" truth
 REFERENCE_MAX_AGE_S = 0.2  # a reference older than this at a percept's time is not used
 
 

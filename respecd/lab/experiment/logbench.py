@@ -30,10 +30,10 @@ import cv2
 import numpy as np
 
 from respecd.errors import InputError
-from respecd.experiment.cache import OutcomeCache, outcome_key
-from respecd.experiment.frames import frame_time
-from respecd.experiment.outcomes import MOTION_IMAGERS, Outcome, detect
-from respecd.experiment.rollout import Piece
+from respecd.lab.experiment.cache import OutcomeCache, outcome_key
+from respecd.lab.experiment.frames import frame_time
+from respecd.lab.experiment.outcomes import MOTION_IMAGERS, Outcome, detect
+from respecd.lab.experiment.rollout import Piece
 from respecd.messages import Frame, SensorConfig
 from respecd.record import codec
 from respecd.record.reader import SessionLog, open_log
@@ -157,7 +157,7 @@ class LogEvaluator:
         return result
 
     def truth(self, piece: Piece, t: float, resolution: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
-        from respecd.perception.data import gt_arrays
+        from respecd.lab.detector.data import gt_arrays
 
         i = self.frames.index_at("rgb", piece.start_s + t)
         frame = self.frames.frame("rgb", i) if i is not None else None

@@ -13,10 +13,10 @@ from collections import defaultdict
 import numpy as np
 import torch
 
+from respecd.lab.detector.data import CONDITIONS, Sample, condition_of
+from respecd.lab.detector.metrics import ImageResult, mean_ap
 from respecd.perception.attribution import grouped
-from respecd.perception.data import CONDITIONS, Sample, condition_of
 from respecd.perception.detector import FusionDetector
-from respecd.perception.metrics import ImageResult, mean_ap
 
 EVAL_SEED = 1_000_003  # far from any training seed
 
@@ -33,7 +33,7 @@ def ablations(aux: tuple[str, ...]) -> dict[str, tuple[str, ...]]:
 def sim_eval_set(pcfg, per_scenario: int, rgb_size: tuple[int, int] = (640, 360), seed: int = EVAL_SEED,
                  progress: bool = False) -> list[Sample]:
     """``per_scenario`` frames of each scenario, one random draw (segment) per 2 frames."""
-    from respecd.perception.data import sim_samples
+    from respecd.lab.detector.data import sim_samples
 
     segments = max(1, per_scenario // 2) * 6
     return sim_samples(pcfg, seed, segments, 2, rgb_size, randomize_sensors=False, show_progress=progress)
@@ -60,7 +60,7 @@ def sample_input(sample: Sample, aux: tuple[str, ...], removed: tuple[str, ...])
 
 def evaluate(detector: FusionDetector, samples: list[Sample], attribute: bool = True, progress: bool = False) -> dict:
     """{"map": {condition: {ablation: {map50, map50_95}}}, "contributions": {condition: {...}}, "frames": {...}}."""
-    from respecd.perception.data import progress as progress_bar
+    from respecd.lab.detector.data import progress as progress_bar
 
     aux = detector.model.spec.aux_modalities
     results: dict[str, dict[str, list[ImageResult]]] = defaultdict(lambda: defaultdict(list))

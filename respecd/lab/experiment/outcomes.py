@@ -22,8 +22,8 @@ from typing import Any
 import numpy as np
 
 from respecd.control.features import FeatureExtractor
-from respecd.experiment.cache import OutcomeCache, outcome_key
-from respecd.experiment.frames import FrameId, frame_id, imu_frame, previous, render, truth
+from respecd.lab.experiment.cache import OutcomeCache, outcome_key
+from respecd.lab.experiment.frames import FrameId, frame_id, imu_frame, previous, render, truth
 from respecd.messages import Bundle, Frame, Health, Percept, SensorConfig, SyncStats
 from respecd.sim.config import SimulationConfig
 from respecd.sim.scenarios import SPECS

@@ -15,10 +15,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from respecd.bench.cameras import flirone_assembler, uvc_file
 from respecd.errors import InputError
+from respecd.lab.bench.cameras import flirone_assembler, uvc_file
 
-DEFAULT_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "real"
+DEFAULT_DATA = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "real"
 RADAR_CAPTURES = (  # TI out-of-box demo data-port recordings (SDK 2.1, 3.6, 3.3)
     "ti_awr1642_oob_piatek/xwr16xx_processed_stream_2023_10_30T09_00_44_253.dat",
     "ti_awr1642_oob_piatek/AWR1642_test_data_SDK_3_6_0.dat",

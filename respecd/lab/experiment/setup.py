@@ -9,8 +9,8 @@ from typing import Any
 import structlog
 
 from respecd.control.shipped import shipped_table_path
-from respecd.experiment.cache import OutcomeCache, fingerprint, model_hash
-from respecd.experiment.outcomes import Evaluator
+from respecd.lab.experiment.cache import OutcomeCache, fingerprint, model_hash
+from respecd.lab.experiment.outcomes import Evaluator
 
 __all__ = ["load_detector", "make_evaluator", "perception_identity", "rgb_resolutions", "shipped_table_path"]
 

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from respecd.control.qlearning import QTable
-from respecd.experiment.rollout import Piece, Rollout, controller_for
+from respecd.lab.experiment.rollout import Piece, Rollout, controller_for
 from respecd.sim.config import SCENARIOS
 
 EVAL_SEED = 1000  # benchmark worlds start here; training seeds stay below

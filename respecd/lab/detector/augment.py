@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import torch
 
-from respecd.perception.data import Sample
+from respecd.lab.detector.data import Sample
 
 
 @dataclass(frozen=True)

@@ -29,8 +29,8 @@ import numpy as np
 
 from respecd.control.persist import fingerprint, read_table
 from respecd.errors import InputError
-from respecd.experiment.rollout import Piece, Rollout, WindowRecord, controller_for
-from respecd.perception.metrics import ImageResult, average_precision
+from respecd.lab.detector.metrics import ImageResult, average_precision
+from respecd.lab.experiment.rollout import Piece, Rollout, WindowRecord, controller_for
 
 POLICIES = ("static", "heuristic", "rl")
 

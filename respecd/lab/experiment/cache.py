@@ -39,7 +39,7 @@ SOURCE_MODULES = {
     "respecd.sim": ("camera.py", "radar_model.py", "render.py", "scenarios.py", "state.py", "textures.py",
                     "world.py"),
     "respecd.perception": ("align.py", "attribution.py", "boxes.py", "detector.py", "model.py"),
-    "respecd.experiment": ("frames.py", "outcomes.py"),
+    "respecd.lab.experiment": ("frames.py", "outcomes.py"),
 }
 
 

@@ -40,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def _table_path(args: argparse.Namespace) -> Path:
     from respecd.errors import InputError
-    from respecd.experiment.setup import shipped_table_path
+    from respecd.lab.experiment.setup import shipped_table_path
 
     path = args.table or shipped_table_path()
     if not path.is_file():
@@ -50,10 +50,10 @@ def _table_path(args: argparse.Namespace) -> Path:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from respecd.config import load_profile
-    from respecd.experiment import latency as lat
-    from respecd.experiment.compare import run_all
-    from respecd.experiment.rollout import Rollout, controller_for
-    from respecd.experiment.setup import load_detector, rgb_resolutions
+    from respecd.lab.experiment import latency as lat
+    from respecd.lab.experiment.compare import run_all
+    from respecd.lab.experiment.rollout import Rollout, controller_for
+    from respecd.lab.experiment.setup import load_detector, rgb_resolutions
 
     start = time.monotonic()
     profile = load_profile(args.profile)
@@ -62,7 +62,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     pinned = lat.load(args.latency, resolutions) if args.latency is not None else None  # a bad file fails first
     detector = load_detector(profile, args.weights, args.random_detector)
     if args.log is not None:
-        from respecd.experiment.logbench import prepare_log
+        from respecd.lab.experiment.logbench import prepare_log
 
         evaluator, pieces, frames_for, extra = prepare_log(args, detector)
     else:
@@ -88,10 +88,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
 def _prepare_sim(args: argparse.Namespace, profile: Any, detector: Any) -> tuple:
     """The simulator as the source: held-out world seeds, one piece per scenario."""
-    from respecd.experiment import latency as lat
-    from respecd.experiment.rollout import Piece
-    from respecd.experiment.setup import make_evaluator
-    from respecd.experiment.training import EVAL_SEED
+    from respecd.lab.experiment import latency as lat
+    from respecd.lab.experiment.rollout import Piece
+    from respecd.lab.experiment.setup import make_evaluator
+    from respecd.lab.experiment.training import EVAL_SEED
 
     evaluator = make_evaluator(detector, profile, not args.no_cache, args.cache_dir)
     duration = args.duration or (QUICK_DURATION_S if args.quick else profile.simulation.scenario_duration_s)
@@ -110,7 +110,7 @@ def _bar(args: argparse.Namespace, total: int) -> Any:
 
 
 def _write_outputs(args: argparse.Namespace, result: dict[str, Any]) -> None:
-    from respecd.experiment.report import figure, markdown
+    from respecd.lab.experiment.report import figure, markdown
 
     if args.markdown:
         args.markdown.parent.mkdir(parents=True, exist_ok=True)

@@ -19,10 +19,10 @@ import structlog
 import torch
 from torch import nn
 
+from respecd.lab.detector.augment import AugmentConfig, augment, collate
+from respecd.lab.detector.loss import detection_loss
 from respecd.perception import checkpoint
-from respecd.perception.augment import AugmentConfig, augment, collate
 from respecd.perception.config import PerceptionConfig
-from respecd.perception.loss import detection_loss
 from respecd.perception.model import FusionNet
 
 log = structlog.get_logger(__name__)
@@ -69,10 +69,10 @@ class EMA:
 def build_pool(cfg: TrainConfig, pcfg: PerceptionConfig):
     """The training samples: rendered sim frames (in memory) or a lazy LLVIP source."""
     if cfg.data == "sim":
-        from respecd.perception.data import sim_samples
+        from respecd.lab.detector.data import sim_samples
 
         return sim_samples(pcfg, cfg.seed, cfg.sim_segments, cfg.sim_per_segment, show_progress=cfg.progress)
-    from respecd.perception.data import LlvipSource
+    from respecd.lab.detector.data import LlvipSource
 
     return LlvipSource(Path(cfg.data), pcfg)
 
@@ -145,7 +145,7 @@ def _maybe_resume(path: Path, cfg: TrainConfig, model: FusionNet, ema: EMA, opt:
 
 def _epoch(model: FusionNet, ema: EMA, opt: torch.optim.Optimizer, pool, cfg: TrainConfig, epoch: int,
            steps: int, total: int) -> float:
-    from respecd.perception.data import progress
+    from respecd.lab.detector.data import progress
 
     rng = np.random.default_rng([cfg.seed, epoch, 11])  # per epoch: a resumed run replays the same batches
     w, h = cfg.augment.size

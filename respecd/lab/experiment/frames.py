@@ -111,7 +111,7 @@ def imu_frame(world: World, t: float) -> Frame:
 
 def truth(world: World, t: float, resolution: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
     """Ground truth boxes (M, 4) at ``resolution`` and their ignore flags, at instant ``t``."""
-    from respecd.perception.data import gt_arrays
+    from respecd.lab.detector.data import gt_arrays
 
     return gt_arrays(ground_truth(world.state_at(t), resolution))
 

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from respecd.errors import InputError
-from respecd.experiment.frames import frame_id, render
+from respecd.lab.experiment.frames import frame_id, render
 from respecd.messages import Frame, SensorConfig
 from respecd.sim.world import World
 

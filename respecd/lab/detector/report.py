@@ -7,7 +7,7 @@ import json
 import math
 from pathlib import Path
 
-from respecd.perception.evaluate import condition_order
+from respecd.lab.detector.evaluate import condition_order
 
 
 def _fmt(v: float) -> str:

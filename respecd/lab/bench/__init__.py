@@ -1,0 +1,17 @@
+"""Benchmarks: ``respecd bench NAME`` prints figures and writes JSON.
+
+Each entry names a module with ``add_arguments(parser)`` and ``run(args) -> dict``; the
+dict is printed as ``key: value`` lines and written with ``--json OUT``.
+"""
+
+from __future__ import annotations
+
+BENCHES: dict[str, str] = {
+    "pipeline": "respecd.lab.bench.pipeline",
+    "drivers": "respecd.lab.bench.drivers",
+    "inference": "respecd.lab.bench.inference",
+    "controller": "respecd.lab.bench.controller",
+    "scenarios": "respecd.lab.bench.scenarios",
+    "sim": "respecd.lab.bench.sim",
+    "replay": "respecd.lab.bench.replay",
+}

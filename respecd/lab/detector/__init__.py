@@ -1,0 +1,1 @@
+"""Detector training and evaluation: datasets, augmentation, loss, the training loop, mAP."""
