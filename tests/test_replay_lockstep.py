@@ -7,7 +7,7 @@ import asyncio
 import random
 import time
 
-from respecd.record.lockstep import LockstepClock, LockstepLoop
+from respecd.replay.lockstep import LockstepClock, LockstepLoop
 
 
 def _scenario(jitter_seed: int) -> list[tuple[float, str]]:
@@ -72,8 +72,8 @@ def test_paced_perception_skips_bundles_like_a_busy_detector() -> None:
 
     from respecd.messages import Bundle, Frame, Health, Percept, SyncStats
     from respecd.queues import DropOldestQueue
-    from respecd.record.latency import LatencyModel
-    from respecd.record.pacing import ModelledPercepts, PacedBundles
+    from respecd.replay.latency import LatencyModel
+    from respecd.replay.pacing import ModelledPercepts, PacedBundles
 
     model = LatencyModel(s_per_pixel=0.1 / (36 * 64), s_per_pixel_attributed=0.3 / (36 * 64), source="test")
     sync = SyncStats(30.0, 0.0, 0.0, Health.GOOD)

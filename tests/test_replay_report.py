@@ -12,12 +12,12 @@ import pytest
 from respecd.clock import ManualClock
 from respecd.drivers.base import SensorPower
 from respecd.messages import Bundle, Detection, Frame, Health, Percept, SensorConfig, SyncStats
-from respecd.record import report_out
 from respecd.record.config import RecordingConfig
-from respecd.record.latency import LatencyModel
 from respecd.record.reader import open_log
 from respecd.record.recorder import Recorder
-from respecd.record.report import Collector, Reference, energy, match, summarize
+from respecd.replay import report_out
+from respecd.replay.latency import LatencyModel
+from respecd.replay.report import Collector, Reference, energy, match, summarize
 
 SYNC = SyncStats(30.0, 0.0, 0.0, Health.GOOD)
 

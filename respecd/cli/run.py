@@ -57,7 +57,7 @@ def main(args: argparse.Namespace) -> int:
 
     fmt = configure_logging(args.log_format, args.log_level)
     if args.replay:
-        from respecd.record.replay import run_replay
+        from respecd.replay.run import run_replay
 
         return run_replay(args)
     profile = load_profile(args.config)

@@ -159,8 +159,8 @@ def _record_simulated(profile: Any, path: Path, args: argparse.Namespace) -> Pat
     """A simulated session recorded in lockstep (as fast as the renderers go, no detector)."""
     from respecd.daemon import Daemon
     from respecd.drivers.base import DriverContext
-    from respecd.record.lockstep import LockstepClock, LockstepLoop
     from respecd.record.recorder import Recorder
+    from respecd.replay.lockstep import LockstepClock, LockstepLoop
 
     quiet = profile.model_copy(update={"perception": profile.perception.model_copy(update={"enabled": False})})
     config = profile.recording.model_copy(update={"enabled": True, "path": str(path), "queue_size": 65536})
@@ -187,7 +187,7 @@ def _replay(profile: Any, log: Path, work: Path, args: argparse.Namespace) -> di
 
     import yaml
 
-    from respecd.record.replay import run_replay
+    from respecd.replay.run import run_replay
 
     work.mkdir(parents=True, exist_ok=True)
     config = work / "replay-profile.yaml"

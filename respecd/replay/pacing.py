@@ -18,7 +18,7 @@ from typing import Any
 
 from respecd.messages import Bundle, Percept
 from respecd.queues import DropOldestQueue
-from respecd.record.latency import LatencyModel
+from respecd.replay.latency import LatencyModel
 
 
 class PacedBundles(DropOldestQueue[Bundle]):

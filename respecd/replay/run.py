@@ -24,11 +24,11 @@ from typing import Any
 import structlog
 
 from respecd.errors import InputError
-from respecd.record import pacing, report_out
-from respecd.record import report as rpt
-from respecd.record.latency import LatencyModel
 from respecd.record.reader import SessionLog, open_log
-from respecd.record.replay_profile import first_frames, replay_profile
+from respecd.replay import pacing, report_out
+from respecd.replay import report as rpt
+from respecd.replay.latency import LatencyModel
+from respecd.replay.profile import first_frames, replay_profile
 
 log = structlog.get_logger(__name__)
 
@@ -68,7 +68,7 @@ def _base_profile(args: argparse.Namespace, session: SessionLog) -> dict[str, An
 
 
 def _run(profile: Any, session: SessionLog, args: argparse.Namespace, speed: str, t0: float, duration: float) -> dict:
-    from respecd.record.lockstep import LockstepLoop
+    from respecd.replay.lockstep import LockstepLoop
 
     state_dir = Path(args.state_dir) if args.state_dir else None
     with tempfile.TemporaryDirectory(prefix="respecd-replay-") as scratch:
@@ -103,7 +103,7 @@ class _Replay:
         from respecd.clock import ScaledClock
         from respecd.daemon import Daemon
         from respecd.drivers.base import DriverContext
-        from respecd.record.lockstep import LockstepClock
+        from respecd.replay.lockstep import LockstepClock
 
         lockstep = self.speed == "max"
         clock: Any = LockstepClock(self.t0) if lockstep else ScaledClock(float(self.speed), start=self.t0)
