@@ -17,10 +17,10 @@ from pydantic import Field, ValidationError, model_validator
 
 from respecd.control.config import ControllerConfig
 from respecd.drivers import config_classes
-from respecd.drivers.base import MAX_RATE_HZ, MIN_RATE_HZ, StrictModel
 from respecd.errors import ConfigError
 from respecd.perception.config import PerceptionConfig
 from respecd.record.config import RecordingConfig
+from respecd.sensors import MAX_RATE_HZ, MIN_RATE_HZ, StrictModel
 from respecd.sim.config import SimulationConfig
 
 BUILTIN_PREFIX = "builtin:"

@@ -7,8 +7,8 @@ import pytest
 from respecd.control.actions import ActionSpace, build_slots
 from respecd.control.baselines import heuristic_position, static_position
 from respecd.control.config import ActionSpaceConfig
-from respecd.drivers.base import Capabilities, DriverConfigBase, clamp_request
 from respecd.errors import ConfigError
+from respecd.sensors import Capabilities, DriverConfigBase, clamp_request
 
 # the FLIR One Pro: 160x120 native (320x240 upscaled), no more than ~9 Hz (SENSORS.md §3)
 FLIR_CAPS = Capabilities("thermal", resolutions=((160, 120), (320, 240)), max_rate_hz=9.0, upscaled=((320, 240),))

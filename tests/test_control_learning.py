@@ -11,8 +11,8 @@ from respecd.control.controller import Controller
 from respecd.control.qlearning import QTable
 from respecd.control.reward import reward_terms, sensing_delay, sensor_power
 from respecd.control.state import Observation, StateSpace
-from respecd.drivers.base import SensorPower
 from respecd.messages import SensorConfig
+from respecd.sensors import SensorPower
 
 
 def test_reward_terms_hand_computed() -> None:

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from respecd.drivers.base import Calibration, Extrinsics, Intrinsics
 from respecd.messages import Frame
 from respecd.perception.align import Aligner, normalize_thermal
 from respecd.perception.config import ModelSpec, PerceptionConfig
+from respecd.sensors import Calibration, Extrinsics, Intrinsics
 
 RGB_K = Intrinsics(fx=457.0, fy=457.0, cx=320.0, cy=180.0, width=640, height=360)
 RGB_CAL = Calibration(intrinsics=RGB_K)

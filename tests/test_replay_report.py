@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 from respecd.clock import ManualClock
-from respecd.drivers.base import SensorPower
 from respecd.messages import Bundle, Detection, Frame, Health, Percept, SensorConfig, SyncStats
 from respecd.record.config import RecordingConfig
 from respecd.record.reader import open_log
@@ -18,6 +17,7 @@ from respecd.record.recorder import Recorder
 from respecd.replay import report_out
 from respecd.replay.latency import LatencyModel
 from respecd.replay.report import Collector, Reference, energy, match, summarize
+from respecd.sensors import SensorPower
 
 SYNC = SyncStats(30.0, 0.0, 0.0, Health.GOOD)
 

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from respecd.clock import MonotonicClock
-from respecd.drivers.base import Capabilities, Driver, DriverConfigBase
+from respecd.drivers.base import Driver
 from respecd.errors import DriverIOError, DriverUnavailableError
 from respecd.messages import Frame, SensorConfig
+from respecd.sensors import Capabilities, DriverConfigBase
 from respecd.supervisor import Backoff, driver_runner, supervise
 
 

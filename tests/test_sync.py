@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from respecd.clock import ManualClock
-from respecd.drivers.base import Capabilities, Driver, DriverConfigBase
+from respecd.drivers.base import Driver
 from respecd.messages import Frame, Health, SensorConfig
 from respecd.queues import DropOldestQueue
+from respecd.sensors import Capabilities, DriverConfigBase
 from respecd.sync import HealthThresholds, Synchronizer, SyncWindow, freshness_limit, tick_rate
 
 

@@ -29,9 +29,9 @@ from dataclasses import dataclass
 from typing import Any
 
 from respecd.control.config import ActionSpaceConfig
-from respecd.drivers.base import MIN_RATE_HZ, Capabilities, DriverConfigBase, clamp_request
 from respecd.errors import ConfigError
 from respecd.messages import Modality, RadarMode, Resolution, SensorConfig
+from respecd.sensors import MIN_RATE_HZ, Capabilities, DriverConfigBase, clamp_request
 
 Setting = Resolution | RadarMode | None
 Position = tuple[tuple[int, int], ...]  # (setting index, rate index) per slot

@@ -11,8 +11,8 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from respecd.drivers.base import MAX_RATE_HZ, MIN_RATE_HZ, StrictModel
 from respecd.messages import RadarMode, Resolution
+from respecd.sensors import MAX_RATE_HZ, MIN_RATE_HZ, StrictModel
 
 Policy = Literal["learn", "exploit", "static", "heuristic"]
 ActionMode = Literal["moves", "product", "factored"]

@@ -21,8 +21,8 @@ from respecd.control.learned import LearnedStates
 from respecd.control.qlearning import FactoredQTable, QTable
 from respecd.control.reward import compute_power, reward_terms, sensing_delay, sensor_power
 from respecd.control.state import Observation, StateSpace, motion_bin
-from respecd.drivers.base import Capabilities, SensorPower
 from respecd.messages import Decision, SensorConfig
+from respecd.sensors import Capabilities, SensorPower
 
 LEARNING_POLICIES = ("learn", "exploit")
 

@@ -28,8 +28,8 @@ from __future__ import annotations
 from collections.abc import Iterable, Mapping
 
 from respecd.control.config import RewardWeights
-from respecd.drivers.base import SensorPower
 from respecd.messages import SensorConfig
+from respecd.sensors import SensorPower
 
 DETECTOR_MODALITIES = ("rgb", "thermal", "radar", "depth")  # inputs whose staleness the detector inherits
 

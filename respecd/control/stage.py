@@ -27,10 +27,11 @@ from respecd.control.features import FeatureExtractor, Window
 from respecd.control.persist import load_into, save_table, table_path
 from respecd.control.probe import SystemProbe, SystemSample
 from respecd.control.shipped import load_shipped
-from respecd.drivers.base import Capabilities, Driver
+from respecd.drivers.base import Driver
 from respecd.errors import DriverError
 from respecd.messages import Decision, Percept, SensorConfig
 from respecd.queues import DropOldestQueue
+from respecd.sensors import Capabilities
 
 log = structlog.get_logger(__name__)
 

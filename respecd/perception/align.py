@@ -21,10 +21,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from respecd.drivers.base import Calibration, Intrinsics
 from respecd.messages import Frame
 from respecd.perception.boxes import pad_to_stride
 from respecd.perception.config import PerceptionConfig
+from respecd.sensors import Calibration, Intrinsics
 
 DEFAULT_RGB_HFOV_DEG = 70.0  # used only when the RGB camera has no calibrated intrinsics
 RADAR_SNR_FULL_DB = 30.0  # SNR mapped to full splat intensity

@@ -10,7 +10,7 @@ from typing import Literal
 
 from pydantic import Field, model_validator
 
-from respecd.drivers.base import StrictModel
+from respecd.sensors import StrictModel
 
 AuxModality = Literal["thermal", "radar", "depth"]
 

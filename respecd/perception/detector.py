@@ -15,7 +15,6 @@ import numpy as np
 import structlog
 import torch
 
-from respecd.drivers.base import Calibration
 from respecd.messages import Detection, Frame, Percept
 from respecd.perception import checkpoint
 from respecd.perception.align import AlignedInput, Aligner
@@ -23,6 +22,7 @@ from respecd.perception.attribution import SceneScores, attribute, grouped
 from respecd.perception.boxes import postprocess
 from respecd.perception.config import PerceptionConfig
 from respecd.perception.model import FusionNet
+from respecd.sensors import Calibration
 
 log = structlog.get_logger(__name__)
 

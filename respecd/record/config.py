@@ -11,7 +11,7 @@ from typing import Literal
 
 from pydantic import Field
 
-from respecd.drivers.base import StrictModel
+from respecd.sensors import StrictModel
 
 Channel = Literal["frames", "radar_raw", "percepts", "decisions", "configs", "sync"]
 ALL_CHANNELS: tuple[Channel, ...] = ("frames", "radar_raw", "percepts", "decisions", "configs", "sync")

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from respecd.drivers.base import Intrinsics
+from respecd.sensors import Intrinsics
 from respecd.sim.state import Occluder, SceneState, Target
 
 NEAR_M = 0.3  # nothing nearer than this is projected

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pydantic import Field, field_validator, model_validator
 
-from respecd.drivers.base import Intrinsics, StrictModel
+from respecd.sensors import Intrinsics, StrictModel
 
 # The six in-lab scenarios of the ReSPEC paper, in the order the paper runs them.
 SCENARIOS: tuple[str, ...] = (

@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
-from respecd.drivers.base import Intrinsics
+from respecd.sensors import Intrinsics
 
 Vec3 = tuple[float, float, float]
 

@@ -37,13 +37,13 @@ import numpy as np
 from respecd.control.actions import Position
 from respecd.control.controller import Controller
 from respecd.control.features import Sample, Window
-from respecd.drivers.base import clamp_request
 from respecd.lab.detector.metrics import ImageResult
 from respecd.lab.experiment.frames import frame_bytes
 from respecd.lab.experiment.latency import Latency
 from respecd.lab.experiment.outcomes import Evaluator
 from respecd.messages import Decision, SensorConfig
 from respecd.perception.attribution import SceneScores
+from respecd.sensors import clamp_request
 from respecd.sim.world import World
 
 
