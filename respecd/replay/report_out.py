@@ -51,16 +51,33 @@ def merge(path: Path, log_id: dict[str, Any], policy: str, entry: dict[str, Any]
     return report
 
 
-def write(path: Path, report: dict[str, Any]) -> Path:
-    """Atomically write the JSON, then the PNG timeline next to it; returns the PNG path."""
+def write(path: Path, report: dict[str, Any]) -> Path | None:
+    """Atomically write the JSON, then the PNG timeline next to it; returns the PNG path,
+    or None when matplotlib (the ``lab`` extra) is not installed: the JSON is the report."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.name, dir=path.parent)
     with os.fdopen(fd, "w", encoding="utf-8") as f:
         json.dump(report, f, indent=1)
     os.replace(tmp, path)
+    plt = _pyplot()
+    if plt is None:
+        log.info("replay.report.no_png", reason="matplotlib not installed (pip install respecd[lab])")
+        return None
     png = path.with_suffix(".png")
-    plot(report, png)
+    plot(report, png, plt)
     return png
+
+
+def _pyplot() -> Any:
+    """matplotlib's pyplot on the file-only Agg backend, or None without the lab extra."""
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+    except ImportError:
+        return None
+    return plt
 
 
 def _cell(entry: dict[str, Any], policy: str, key: Any, fmt: str, scale: float = 1.0) -> str:
@@ -85,13 +102,8 @@ def table(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def plot(report: dict[str, Any], png: Path) -> None:
+def plot(report: dict[str, Any], png: Path, plt: Any) -> None:
     """Timeline per policy: actions, contributions, ConfAgg, latency (the load signal)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     fig, axes = plt.subplots(4, 1, figsize=(11, 9), sharex=True)
     names: dict[str, int] = {}
     for policy, entry in report["policies"].items():

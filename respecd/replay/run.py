@@ -153,12 +153,28 @@ class _Replay:
 
 
 def _progress_bar() -> Any:
-    from tqdm import tqdm
+    try:
+        from tqdm import tqdm
+    except ImportError:  # the lab extra: without it a replay runs without a progress bar
+        return _NoBar
 
     class Bar(tqdm):  # type: ignore[misc]
         monitor_interval = 0  # no monitor thread: it would outlive the replay by 10 s
 
     return Bar
+
+
+class _NoBar:
+    """The part of tqdm's interface the replay uses, doing nothing."""
+
+    def __init__(self, **_: Any) -> None:
+        self.n = 0.0
+
+    def update(self, step: float) -> None:
+        self.n += step
+
+    def close(self) -> None:
+        pass
 
 
 def _emit(args: argparse.Namespace, session: SessionLog, entry: dict[str, Any]) -> int:
@@ -169,7 +185,7 @@ def _emit(args: argparse.Namespace, session: SessionLog, entry: dict[str, Any]) 
         path = Path(args.report)
         report = report_out.merge(path, log_id, policy, entry)
         png = report_out.write(path, report)
-        log.info("replay.report", json=str(path), png=str(png), policies=list(report["policies"]))
+        log.info("replay.report", json=str(path), png=str(png) if png else None, policies=list(report["policies"]))
     else:
         report = {"log": log_id, "policies": {policy: entry}}
     print(report_out.table(report))
