@@ -64,14 +64,14 @@ def attribute(
     """
     x = x.detach().requires_grad_(True)
     with torch.enable_grad():
-        box_logits, cls_logits = model(x, presence)
-        dets = postprocess(box_logits.detach(), cls_logits.detach(), tuple(x.shape[2:]), model.spec.reg_max,
-                           score_threshold, iou_threshold, max_det)[0]
+        boxes_all, scores_all = model.decode(model(x, presence), tuple(x.shape[2:]))
+        dets = postprocess(boxes_all.detach(), scores_all.detach(), tuple(x.shape[2:]), score_threshold,
+                           iou_threshold, max_det)[0]
         boxes, scores, labels, anchors = dets
         if len(scores) == 0:
             return list(dets), None, None
         k = min(top_k, len(scores))  # postprocess sorts by score, so these are the top K
-        target = cls_logits[0, anchors[:k], labels[:k]].sigmoid().sum()
+        target = scores_all[0, anchors[:k], labels[:k]].sum()
         (grad,) = torch.autograd.grad(target, x)
     saliency = (grad[0] * x[0]).abs().detach()  # (C, H, W)
     per_target = box_channel_sums(saliency, boxes[:k])

@@ -10,8 +10,6 @@ import math
 
 import torch
 
-from respecd.perception.model import anchor_grid, decode_boxes
-
 
 def box_iou(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Pairwise IoU of (N, 4) and (M, 4) x1y1x2y2 boxes -> (N, M)."""
@@ -62,22 +60,19 @@ def pad_to_stride(height: int, width: int, stride: int = 32) -> tuple[int, int]:
 
 
 def postprocess(
-    box_logits: torch.Tensor,
-    cls_logits: torch.Tensor,
+    boxes: torch.Tensor,
+    scores_all: torch.Tensor,
     input_hw: tuple[int, int],
-    reg_max: int,
     score_threshold: float,
     iou_threshold: float,
     max_det: int,
 ) -> list[tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]]:
     """Per image: (boxes (K, 4), scores (K,), labels (K,), anchor indices (K,)) after NMS.
 
-    The anchor index lets attribution go back to the pre-NMS score that produced a box.
-    Class-aware NMS by offsetting boxes per class.
+    Input is a net's ``decode`` output: boxes (B, N, 4) x1y1x2y2 pixels, class probabilities
+    (B, N, nc). The anchor index lets attribution go back to the pre-NMS score that produced
+    a box. Class-aware NMS by offsetting boxes per class.
     """
-    points, strides = anchor_grid(*input_hw, device=box_logits.device)
-    boxes = decode_boxes(box_logits, points, strides, reg_max)  # (B, N, 4)
-    scores_all = cls_logits.sigmoid()  # (B, N, nc)
     out = []
     for b in range(boxes.shape[0]):
         scores, labels = scores_all[b].max(-1)  # (N,)

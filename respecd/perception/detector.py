@@ -79,9 +79,9 @@ class FusionDetector:
         cfg = self.config
         if not attribute_now:
             with torch.inference_mode():
-                box_logits, cls_logits = self.model(x, presence)
-                dets = postprocess(box_logits, cls_logits, tuple(x.shape[2:]), self.model.spec.reg_max,
-                                   cfg.score_threshold, cfg.iou_threshold, cfg.max_detections)[0]
+                boxes, scores = self.model.decode(self.model(x, presence), tuple(x.shape[2:]))
+                dets = postprocess(boxes, scores, tuple(x.shape[2:]), cfg.score_threshold, cfg.iou_threshold,
+                                   cfg.max_detections)[0]
             return self._detections(dets, None, aligned.size), None
         dets, per_target, scene = attribute(self.model, x, presence, cfg.score_threshold, cfg.iou_threshold,
                                             cfg.max_detections, cfg.attribution_targets)

@@ -173,6 +173,13 @@ class FusionNet(nn.Module):
         feats = self.neck(torch.cat([r3, a3], 1), torch.cat([r4, a4], 1), torch.cat([r5, a5], 1))
         return self.head(feats)
 
+    def decode(self, raw: tuple[torch.Tensor, torch.Tensor],
+               input_hw: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Raw head output -> boxes (B, N, 4) x1y1x2y2 in input pixels and class probabilities (B, N, nc)."""
+        box_logits, cls_logits = raw
+        points, strides = anchor_grid(*input_hw, device=box_logits.device)
+        return decode_boxes(box_logits, points, strides, self.spec.reg_max), cls_logits.sigmoid()
+
 
 def anchor_grid(height: int, width: int, device: torch.device | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Anchor centres (N, 2) in pixels and their strides (N, 1), in the head's output order."""

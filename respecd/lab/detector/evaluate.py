@@ -95,9 +95,9 @@ def _predict(detector: FusionDetector, x: torch.Tensor, presence: torch.Tensor, 
         contributions = grouped(model.spec.channels, scene) if scene is not None else None
     else:
         with torch.inference_mode():
-            b, c = model(x, presence)
-            dets = postprocess(b, c, tuple(x.shape[2:]), model.spec.reg_max, cfg.score_threshold,
-                               cfg.iou_threshold, cfg.max_detections)[0]
+            boxes, scores = model.decode(model(x, presence), tuple(x.shape[2:]))
+            dets = postprocess(boxes, scores, tuple(x.shape[2:]), cfg.score_threshold, cfg.iou_threshold,
+                               cfg.max_detections)[0]
         contributions = None
     return dets[0].detach().numpy(), dets[1].detach().numpy(), contributions
 
