@@ -84,7 +84,7 @@ def test_radar_dump_text_reports_skips_and_gaps(tmp_path: Path, capsys: pytest.C
     assert main(["radar-dump", str(capture)]) == 0
     captured = capsys.readouterr()
     lines = captured.out.splitlines()
-    assert len(lines) == 98 and "GAP 2 missing" in lines[10]
+    assert len(lines) == 98 and "GAP 2 missing before the previous frame" in lines[11]  # frame 82 confirms 81
     assert "376 bytes skipped" in captured.err and "1 gaps (2 frames missing)" in captured.err
 
 

@@ -205,3 +205,48 @@ def test_packet_becomes_a_radar_frame() -> None:
     assert frame.meta["raw"] == packet.raw and frame.meta["frame_number"] == 69
     assert frame.meta["tlvs"] == (1, 7, 2, 6, 9) and frame.meta["version"] == "3.6.0.0"
     assert frame.meta["temperature"]["valid"] and frame.meta["stats"]["transmit_output_time_us"] > 0
+
+
+@pytest.mark.parametrize("extra", range(1, 8))
+def test_total_length_a_few_bytes_too_large_spares_the_next_frame(extra: int) -> None:
+    frames = _reference_frames(_read(SDK33))
+    stream = bytearray()
+    hit = set()
+    for index, (_, number, raw) in enumerate(frames):
+        if index % 10 == 5:  # totalPacketLen overstated by 1-7 B: it reaches into the next magic word
+            raw = raw[:12] + struct.pack("<I", len(raw) + extra) + raw[16:]
+            hit.add(number)
+        stream += raw
+    parser = MmwParser()
+    packets = _feed_chunks(parser, bytes(stream), [333] * (len(stream) // 333))
+    lost = {n for _, n, _ in frames} - {p.frame_number for p in packets}
+    assert not lost - hit  # the overstated frame may be lost, never the one after it
+    assert parser.stats.missing_frames == len(lost)
+    _assert_accounting(parser, packets)
+
+
+def _numbered(raw: bytes, number: int) -> bytes:
+    return raw[:20] + struct.pack("<I", number) + raw[24:]
+
+
+@pytest.mark.parametrize("bit", [0, 3, 12, 31])
+def test_one_flipped_bit_in_a_frame_number_adds_no_drops(bit: int) -> None:
+    raws = [raw for _, _, raw in _reference_frames(_read(SDK33))]
+    raws[40] = _numbered(raws[40], struct.unpack_from("<I", raws[40], 20)[0] ^ (1 << bit))
+    parser = MmwParser()
+    packets = parser.feed(b"".join(raws))
+    assert len(packets) == len(raws)
+    assert sum(p.gap for p in packets) == 0 and parser.stats.missing_frames == 0 and parser.stats.restarts == 0
+
+
+def test_a_real_jump_is_counted_once_the_next_frame_confirms_it() -> None:
+    raws = [raw for _, _, raw in _reference_frames(_read(SDK33))]
+    kept = raws[:30] + raws[35:]  # 5 frames lost on the UART
+    parser = MmwParser()
+    packets = parser.feed(b"".join(kept))
+    assert [p.gap for p in packets if p.gap] == [5] and parser.stats.missing_frames == 5
+    # the frame right after the gap has a corrupted number: it still arrived, the gap stays 5
+    kept[31] = _numbered(kept[31], 1 << 30)
+    parser = MmwParser()
+    packets = parser.feed(b"".join(kept))
+    assert sum(p.gap for p in packets) == 5 and parser.stats.missing_frames == 5 and parser.stats.restarts == 0

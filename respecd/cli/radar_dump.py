@@ -96,7 +96,8 @@ def _version(value: int) -> str:
 
 def _text(record: dict[str, Any]) -> str:
     tlvs = ",".join(str(t) for t in record["tlvs"]) or "-"
-    gap = f" GAP {record['gap']} missing" if record["gap"] else ""
+    # a jump is confirmed by the frame after it (respecd.radar.sequence): the lost frames came before the previous one
+    gap = f" GAP {record['gap']} missing before the previous frame" if record["gap"] else ""
     if record["format"] != "oob":
         return (f"frame {record['frame']:>7} {record['format']} v{record['version']} tlvs {tlvs} "
                 f"bytes {record['bytes']} (not the out-of-box format: points not decoded){gap}")

@@ -23,6 +23,7 @@ import numpy as np
 
 from respecd.messages import Frame
 from respecd.radar import tlv
+from respecd.radar.sequence import FrameSequence, SequenceCounts
 from respecd.radar.tlv import MAGIC, Header, TlvType
 
 DEFAULT_MAX_PACKET = 256 * 1024  # largest packet accepted: a 256x128 range-Doppler map is 64 KiB
@@ -112,17 +113,15 @@ Packet = RadarPacket | ForeignPacket
 
 
 @dataclass
-class ParserStats:
-    """Counters over everything fed so far."""
+class ParserStats(SequenceCounts):
+    """Counters over everything fed so far (frame-number ones from ``SequenceCounts``)."""
 
     bytes_in: int = 0
     bytes_skipped: int = 0  # garbage, partial leading frames, rejected packets
     packets: int = 0  # out-of-box packets decoded
     foreign_packets: int = 0
     bad_packets: int = 0  # magic + header found but the packet was inconsistent
-    gaps: int = 0  # places where frame numbers jumped forward
-    missing_frames: int = 0  # frames lost in those jumps
-    restarts: int = 0  # frame numbers went backwards (sensor restarted)
+    overlong_packets: int = 0  # totalPacketLen reached into the next magic word; cut there
     tlv_counts: Counter[int] = field(default_factory=Counter)
     last_error: str | None = None
 
@@ -142,7 +141,7 @@ class MmwParser:
         self.stats = ParserStats()
         self._buf = bytearray()
         self._base = 0  # stream offset of _buf[0]
-        self._last_frame: dict[str, int] = {}
+        self._sequences: dict[str, FrameSequence] = {}
         self._wait_until = 0  # stream offset up to which a pending packet extends
         self._scanned = 0  # stream offset up to which the pending packet holds no other magic
         self._pending: tuple[int, Header] | None = None  # (stream offset, checked header) awaiting its tail
@@ -239,7 +238,10 @@ class MmwParser:
         counts = self.stats.tlv_counts
         for tlv_type, _, _ in packet.tlvs:
             counts[tlv_type] += 1
-        return header.total_len, _with_gap(packet, gap)
+        size = self._trim(raw, _tlv_end(packet.tlvs, tlv.HEADER.size))
+        if size != len(raw) or gap:
+            packet = dataclasses.replace(packet, raw=raw[:size], gap=gap)
+        return size, packet
 
     def _foreign(self, pos: int) -> tuple[int, Packet | None]:
         buf = self._buf
@@ -261,25 +263,30 @@ class MmwParser:
         gap = self._track("pplcount", frame_number)
         self.stats.foreign_packets += 1
         types = tuple(t for t, _, _ in walked)
-        return total, ForeignPacket("pplcount", frame_number, version, platform, types, raw, self._base + pos, gap)
+        size = self._trim(raw, _tlv_end(walked, _PPL_HEADER_LEN))
+        offset = self._base + pos
+        return size, ForeignPacket("pplcount", frame_number, version, platform, types, raw[:size], offset, gap)
+
+    def _trim(self, raw: bytes, tlv_end: int) -> int:
+        """Bytes the packet really spans: an overstated totalPacketLen (1-7 B) ends inside the next
+        magic word, whose first bytes then sit in the padding; give them back to the next packet."""
+        for k in range(min(len(MAGIC) - 1, len(raw) - tlv_end), 0, -1):
+            if raw.endswith(MAGIC[:k]):
+                self.stats.overlong_packets += 1
+                return len(raw) - k
+        return len(raw)
 
     def _track(self, kind: str, frame_number: int) -> int:
-        """Frames missing before ``frame_number``; counts gaps and restarts."""
-        last = self._last_frame.get(kind)
-        self._last_frame[kind] = frame_number
-        if last is None or frame_number == last + 1:
-            return 0
-        if frame_number <= last:
-            self.stats.restarts += 1
-            return 0
-        missing = frame_number - last - 1
-        self.stats.gaps += 1
-        self.stats.missing_frames += missing
-        return missing
+        """Frames found missing as of this packet (see ``respecd.radar.sequence``)."""
+        sequence = self._sequences.get(kind)
+        if sequence is None:
+            sequence = self._sequences[kind] = FrameSequence(self.stats)
+        return sequence.advance(frame_number)
 
 
-def _with_gap(packet: RadarPacket, gap: int) -> RadarPacket:
-    return dataclasses.replace(packet, gap=gap) if gap else packet
+def _tlv_end(walked: tuple[tuple[int, int, int], ...] | list[tuple[int, int, int]], header_len: int) -> int:
+    """Offset just past the last TLV's payload (where the padding begins)."""
+    return walked[-1][1] + walked[-1][2] if walked else header_len
 
 
 def decode_oob(
@@ -292,7 +299,7 @@ def decode_oob(
     walked = tlv.walk_tlvs(raw, tlv.HEADER.size, header.num_tlvs, header.total_len, length_includes_header=False)
     if isinstance(walked, str):
         return walked
-    end = walked[-1][1] + walked[-1][2] if walked else tlv.HEADER.size
+    end = _tlv_end(walked, tlv.HEADER.size)
     if header.total_len - end >= tlv.SEGMENT:
         return f"{header.total_len - end} B after the last TLV (padding is < {tlv.SEGMENT})"
     view = memoryview(raw)
