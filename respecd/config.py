@@ -8,23 +8,28 @@ because a robotics engineer editing YAML on a rover needs the line, not a traceb
 from __future__ import annotations
 
 import functools
+import json
+import re
+from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
 
-import yaml
 from pydantic import Field, ValidationError, model_validator
 
 from respecd.control.config import ControllerConfig
 from respecd.drivers import config_classes
 from respecd.errors import ConfigError
 from respecd.perception.config import PerceptionConfig
+from respecd.profile_yaml import MAX_BYTES, parse
 from respecd.record.config import RecordingConfig
 from respecd.sensors import MAX_RATE_HZ, MIN_RATE_HZ, StrictModel
 from respecd.sim.config import SimulationConfig
 
 BUILTIN_PREFIX = "builtin:"
 DEFAULT_PROFILE = "builtin:sim-rover"
+BUILTIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")  # a file name in the package, no path
+NUMBER_ERRORS = frozenset({"float_type", "int_type", "float_parsing", "int_parsing", "int_from_float"})
 
 
 class SyncConfig(StrictModel):
@@ -106,23 +111,38 @@ def json_schema() -> dict[str, Any]:
     return schema
 
 
+@dataclass(frozen=True)
+class LoadedProfile:
+    """A validated profile with where it came from, for checks that report ``FILE:LINE``."""
+
+    model: Any
+    label: str
+    lines: dict[tuple[Any, ...], int]
+
+    def line(self, *path: Any) -> int:
+        return _nearest_line(self.lines, path)
+
+
 def load_profile(source: str | Path = DEFAULT_PROFILE) -> Any:
     """Read, parse and validate a profile file (or ``builtin:NAME``); raise ConfigError."""
+    return read_profile(source).model
+
+
+def read_profile(source: str | Path = DEFAULT_PROFILE) -> LoadedProfile:
+    """``load_profile`` keeping the file label and the key-path -> line index.
+
+    Scalars are validated strictly, as their YAML type: ``rate_hz: yes`` (a boolean) or
+    ``rate_hz: "30"`` (a string) are errors, not 1 and 30.
+    """
     label, text = _read_source(str(source))
-    try:
-        document = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        line = mark.line + 1 if mark is not None else 0
-        problem = getattr(err, "problem", None) or str(err)
-        raise ConfigError(f"{label}:{line}: not valid YAML: {problem}") from err
-    if not isinstance(document, dict):
+    parsed = parse(label, text)
+    if not isinstance(parsed.document, dict):
         raise ConfigError(f"{label}:1: profile must be a mapping of sections (expected keys like name, sensors)")
     try:
-        return profile_model().model_validate(document)
+        as_json = json.dumps(parsed.document, default=str)  # dates and the like are text to a profile
+        return LoadedProfile(profile_model().model_validate_json(as_json, strict=True), label, parsed.lines)
     except ValidationError as err:
-        lines = _line_index(text)
-        problems = [_format_problem(label, lines, e) for e in err.errors()]
+        problems = [_format_problem(label, parsed.lines, e) for e in err.errors()]
         raise ConfigError(f"{label}: {len(problems)} problem(s)", problems) from err
 
 
@@ -130,40 +150,22 @@ def _read_source(source: str) -> tuple[str, str]:
     if source.startswith(BUILTIN_PREFIX):
         name = source[len(BUILTIN_PREFIX) :]
         resource = resources.files("respecd.profiles") / f"{name}.yaml"  # a mapped package (pyproject package-dir)
-        if not resource.is_file():
+        if not BUILTIN_NAME.fullmatch(name) or not resource.is_file():
             raise ConfigError(f"{source}: no built-in profile named {name!r}")
         return f"<{source}>", resource.read_text(encoding="utf-8")
     path = Path(source)
     try:
+        size = path.stat().st_size
+        if path.is_file() and size > MAX_BYTES:
+            raise ConfigError(
+                f"{path}:1: profile is {size} bytes, more than the {MAX_BYTES} allowed "
+                "(a profile is a few kB: is this the right file?)"
+            )
         return str(path), path.read_text(encoding="utf-8")
     except FileNotFoundError as err:
         raise ConfigError(f"{path}: no such file") from err
     except (OSError, UnicodeDecodeError) as err:
         raise ConfigError(f"{path}: cannot read: {err}") from err
-
-
-def _line_index(text: str) -> dict[tuple[Any, ...], int]:
-    """Map each key path in the YAML document to its 1-based line number."""
-    index: dict[tuple[Any, ...], int] = {}
-    try:
-        root = yaml.compose(text, Loader=yaml.SafeLoader)
-    except yaml.YAMLError:
-        return index
-
-    def walk(node: yaml.Node, path: tuple[Any, ...]) -> None:
-        index[path] = node.start_mark.line + 1
-        if isinstance(node, yaml.MappingNode):
-            for key_node, value_node in node.value:
-                child = (*path, key_node.value)
-                walk(value_node, child)
-                index[child] = key_node.start_mark.line + 1
-        elif isinstance(node, yaml.SequenceNode):
-            for i, item in enumerate(node.value):
-                walk(item, (*path, i))
-
-    if root is not None:
-        walk(root, ())
-    return index
 
 
 def _format_problem(label: str, lines: dict[tuple[Any, ...], int], error: Any) -> str:
@@ -184,9 +186,23 @@ def _format_problem(label: str, lines: dict[tuple[Any, ...], int], error: Any) -
         message = f"unknown driver {tag!r} (expected one of: {', '.join(sorted(_tags()))})"
     elif kind == "union_tag_not_found":
         message = f"required key is missing (expected one of: {', '.join(sorted(_tags()))})"
+    elif kind in NUMBER_ERRORS and isinstance(error.get("input"), bool):
+        message = f"expected a number, got {error['input']!r} (YAML reads yes/no/on/off/true/false as booleans)"
+    elif kind in NUMBER_ERRORS and isinstance(error.get("input"), str):
+        message = f"expected a number, got the text {error['input']!r}" + _quoted_number_hint(error["input"])
+    elif kind == "bool_type" and not isinstance(error.get("input"), bool):
+        message = f"expected true or false, got {error['input']!r}"
     elif "input" in error and kind != "value_error":
         message = f"{message} (got {error['input']!r})"
     return f"{label}:{line}: {path}: {message}"
+
+
+def _quoted_number_hint(text: str) -> str:
+    try:
+        float(text)
+    except ValueError:
+        return ""
+    return " (write numbers without quotes)"
 
 
 @functools.cache

@@ -79,7 +79,7 @@ def test_every_problem_has_file_line_path_and_expectation(tmp_path):
         "P:9: sensors.1.driver: unknown driver 'simm' (expected one of: "
         + ", ".join(sorted(__import__("respecd.drivers").drivers.DRIVERS))
         + ")",
-        "P:12: sync.max_rate_hz: Input should be a valid number, unable to parse string as a number (got 'fast')",
+        "P:12: sync.max_rate_hz: expected a number, got the text 'fast'",
     ]
 
 

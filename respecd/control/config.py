@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field, model_validator
+from pydantic import Field, field_validator, model_validator
 
 from respecd.messages import RadarMode, Resolution
 from respecd.sensors import MAX_RATE_HZ, MIN_RATE_HZ, StrictModel
@@ -229,6 +229,14 @@ class ControllerConfig(StrictModel):
     reward: RewardWeights = Field(RewardWeights(), description="Reward weights.")
     learning: Learning = Field(Learning(), description="Q-learning hyper-parameters.")
     actions: ActionSpaceConfig = Field(ActionSpaceConfig(), description="Action space.")
+
+    @field_validator("table_file")
+    @classmethod
+    def _inside_state_dir(cls, name: str) -> str:
+        """A file name, not a path: the Q-table lives in the state directory and nowhere else."""
+        if name and (name in (".", "..") or any(c in name for c in "/\\\0")):
+            raise ValueError(f"must be a file name inside the state directory (no '/' or '..'), got {name!r}")
+        return name
 
     @model_validator(mode="after")
     def _unique_factors(self) -> ControllerConfig:
