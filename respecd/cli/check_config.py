@@ -5,23 +5,36 @@ from __future__ import annotations
 import argparse
 import sys
 
-from respecd.config import load_profile
+from respecd.config import read_profile
 from respecd.errors import ConfigError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("files", nargs="+", metavar="FILE", help="profile YAML files (or builtin:NAME)")
+    parser.add_argument(
+        "--state-dir", metavar="DIR", help="where the daemon finds the Q-table (default: as the daemon resolves it)"
+    )
 
 
 def main(args: argparse.Namespace) -> int:
+    """Each profile is validated, then checked against this machine as the daemon would at start
+    (files it names, torch device, Q-table): ok here means it starts here."""
+    from respecd.control.persist import resolve_state_dir
+    from respecd.preflight import check_profile
+
+    state_dir = resolve_state_dir(args.state_dir)
     failed = False
     for source in args.files:
         try:
-            profile = load_profile(source)
+            loaded = read_profile(source)
+            problems = check_profile(loaded, state_dir)
         except ConfigError as err:
+            problems = err.problems
+        if problems:
             failed = True
-            for line in err.problems:
+            for line in problems:
                 print(line, file=sys.stderr)
             continue
+        profile = loaded.model
         print(f"{source}: ok ({profile.name}, {len(profile.sensors)} sensors)")
     return 2 if failed else 0

@@ -11,7 +11,7 @@ from typing import Any
 
 import structlog
 
-from respecd.config import DEFAULT_PROFILE, load_profile
+from respecd.config import DEFAULT_PROFILE, read_profile
 from respecd.errors import ConfigError
 
 log = structlog.get_logger(__name__)
@@ -60,10 +60,35 @@ def main(args: argparse.Namespace) -> int:
         from respecd.replay.run import run_replay
 
         return run_replay(args)
-    profile = load_profile(args.config)
-    status = asyncio.run(run_live(profile, args, console=fmt == "console"))
+    loaded = read_profile(args.config)
+    state_dir = prepare_state_dir(args.state_dir)
+    preflight(loaded, state_dir, args.policy)
+    status = asyncio.run(run_live(loaded.model, args, console=fmt == "console", state_dir=state_dir))
     exit_now(status)
     return status  # not reached
+
+
+def prepare_state_dir(cli_value: str | None) -> Any:
+    from respecd.control.persist import resolve_state_dir
+
+    try:
+        return resolve_state_dir(cli_value)
+    except OSError as err:
+        raise ConfigError(f"--state-dir: cannot use {cli_value!r}: {err}") from err
+
+
+def preflight(loaded: Any, state_dir: Any, policy: str | None) -> None:
+    """Fail at start (exit 2), not at the first save or inference: files, device, state directory."""
+    from respecd.preflight import check_profile, check_state_dir
+
+    problems = check_profile(loaded, state_dir, policy)
+    controller = loaded.model.controller
+    if controller.enabled and (policy or controller.policy) == "learn":
+        problem = check_state_dir(state_dir)
+        if problem:
+            problems.append(f"--state-dir: {problem}")
+    if problems:
+        raise ConfigError(f"{loaded.label}: {len(problems)} problem(s)", problems)
 
 
 def status_printer(console: bool) -> Any:
@@ -91,18 +116,13 @@ def make_recorder(profile: Any, path: str | None, clock: Any) -> Any:
     return Recorder(config, profile, clock)
 
 
-async def run_live(profile: Any, args: argparse.Namespace, console: bool) -> int:
+async def run_live(profile: Any, args: argparse.Namespace, console: bool, state_dir: Any) -> int:
     from respecd.clock import MonotonicClock
-    from respecd.control.persist import resolve_state_dir
     from respecd.daemon import Daemon
     from respecd.drivers.base import DriverContext
     from respecd.sdnotify import Notifier
 
     clock = MonotonicClock()
-    try:
-        state_dir = resolve_state_dir(args.state_dir)
-    except OSError as err:
-        raise ConfigError(f"--state-dir: cannot use {args.state_dir!r}: {err}") from err
     if args.seed is not None:
         profile = profile.model_copy(update={"controller": profile.controller.model_copy(update={"seed": args.seed})})
     context = DriverContext(seed=args.seed or 0, simulation=getattr(profile, "simulation", None))

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import json
 import os
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -17,23 +16,15 @@ import torch
 from pydantic import ValidationError
 
 from respecd.errors import ConfigError
-from respecd.perception.config import ModelSpec
+from respecd.perception.config import ModelSpec, resolve_weights
 from respecd.perception.model import FusionNet, count_parameters
 
 FORMAT = "respecd-fusion/1"
-BUILTIN_PREFIX = "builtin:"
 
 
 def resolve(source: str) -> Path:
     """'builtin:NAME' -> the packaged weights file; anything else is a path."""
-    if source.startswith(BUILTIN_PREFIX):
-        name = source[len(BUILTIN_PREFIX):]
-        resource = resources.files("respecd.perception") / "weights" / f"{name}.pt"
-        with resources.as_file(resource) as path:
-            if not path.is_file():
-                raise ConfigError(f"{source}: no built-in checkpoint named {name!r} (run `make weights`)")
-            return Path(path)
-    return Path(source)
+    return resolve_weights(source)
 
 
 def save(path: Path, model: FusionNet, extra: dict[str, Any] | None = None) -> None:

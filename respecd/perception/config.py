@@ -6,13 +6,33 @@ which field differs). The defaults are the shipped ``builtin:sim-rover`` checkpo
 
 from __future__ import annotations
 
+import re
+from importlib import resources
+from pathlib import Path
 from typing import Literal
 
 from pydantic import Field, model_validator
 
+from respecd.errors import ConfigError
 from respecd.sensors import StrictModel
 
 AuxModality = Literal["thermal", "radar", "depth"]
+BUILTIN_PREFIX = "builtin:"
+_BUILTIN_NAME = re.compile(r"[A-Za-z0-9_][A-Za-z0-9_.-]*")  # a file of the package, never a path out of it
+
+
+def resolve_weights(source: str) -> Path:
+    """'builtin:NAME' -> the packaged weights file; anything else is a path (no torch needed)."""
+    if not source.startswith(BUILTIN_PREFIX):
+        return Path(source)
+    name = source[len(BUILTIN_PREFIX):]
+    if not _BUILTIN_NAME.fullmatch(name):
+        raise ConfigError(f"{source}: a built-in checkpoint is named by a plain name (no '/' or '..'), got {name!r}")
+    resource = resources.files("respecd.perception") / "weights" / f"{name}.pt"
+    with resources.as_file(resource) as path:
+        if not path.is_file():
+            raise ConfigError(f"{source}: no built-in checkpoint named {name!r} (run `make weights`)")
+        return Path(path)
 
 
 class ModelSpec(StrictModel):

@@ -1,0 +1,119 @@
+"""Checks of a valid profile against this machine, before anything starts: the files it
+names exist, the torch device it asks for is usable, the state directory is writable.
+
+``load_profile`` only says whether a profile is well-formed; these say whether it can run
+here. ``respecd check-config`` and the daemon run the same checks, so a profile that
+check-config calls ok does not die at start. Every problem is one ``FILE:LINE: path: ...``
+line (exit 2).
+
+Why an unusable torch device is an error and not a fallback to the CPU: the profile asked
+for that device, and on the rover the detector on the CPU is several times slower, so the
+controller's latency and load signals, and the Q-table learned from them, would silently
+describe another machine. Write ``device: cpu`` to run on the CPU.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from respecd.config import LoadedProfile
+from respecd.errors import ConfigError
+from respecd.perception.config import resolve_weights
+
+
+def check_profile(loaded: LoadedProfile, state_dir: Path | None = None, policy: str | None = None) -> list[str]:
+    """Every problem that would stop this profile from running on this machine."""
+    problems = [*_weights(loaded), *_sensor_files(loaded), *_qtable(loaded, state_dir, policy)]
+    profile = loaded.model
+    if profile.perception.enabled:
+        reason = device_problem(profile.perception.device)
+        if reason:
+            problems.append(_at(loaded, ("perception", "device"), reason))
+    return problems
+
+
+def check_state_dir(path: Path) -> str | None:
+    """Why ``path`` cannot hold the Q-table (created if missing), or None. A real write is
+    tried: permissions alone do not show a read-only mount or a full disk."""
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=path, prefix=".respecd-write-check-"):
+            pass
+    except OSError as err:
+        return f"{path}: state directory is not writable ({err.strerror or err}); the Q-table could not be saved"
+    return None
+
+
+def device_problem(device: str) -> str | None:
+    """Why this torch cannot run on ``device``, or None. Imports torch only for a non-CPU device."""
+    if device == "cpu":
+        return None
+    import torch
+
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, ValueError) as err:
+        return f"{device!r} is not a torch device ({err}); expected cpu, cuda or cuda:N"
+    if parsed.type == "cpu":
+        return None
+    if parsed.type == "cuda":
+        if torch.version.cuda is None:
+            return (f"{device!r} cannot be used: this torch ({torch.__version__}) was built without CUDA "
+                    "(install a CUDA build, e.g. the Jetson wheel via TORCH_SPEC, or write device: cpu)")
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            return f"{device!r} cannot be used: torch {torch.__version__} sees no CUDA device (driver loaded?)"
+        if parsed.index is not None and parsed.index >= count:
+            return f"{device!r} cannot be used: this machine has {count} CUDA device(s)"
+        return None
+    backend = getattr(torch.backends, parsed.type, None) or getattr(torch, parsed.type, None)
+    available = getattr(backend, "is_available", None)
+    if available is None or not available():
+        return f"{device!r} cannot be used by this torch ({torch.__version__}); expected cpu or cuda"
+    return None
+
+
+def _at(loaded: LoadedProfile, path: tuple[Any, ...], message: str) -> str:
+    return f"{loaded.label}:{loaded.line(*path)}: {'.'.join(map(str, path))}: {message}"
+
+
+def _weights(loaded: LoadedProfile) -> list[str]:
+    perception = loaded.model.perception
+    if not perception.enabled:
+        return []
+    try:
+        path = resolve_weights(perception.weights)
+    except ConfigError as err:
+        return [_at(loaded, ("perception", "weights"), str(err))]
+    if not path.is_file():
+        return [_at(loaded, ("perception", "weights"), f"{path}: no such checkpoint file")]
+    return []
+
+
+def _sensor_files(loaded: LoadedProfile) -> list[str]:
+    """Files a sensor entry names: any path-typed key, and a video file played as a camera."""
+    problems = []
+    for i, sensor in enumerate(loaded.model.sensors):
+        for key in type(sensor).model_fields:
+            value = getattr(sensor, key)
+            if isinstance(value, Path) and not value.is_file():
+                problems.append(_at(loaded, ("sensors", i, key), f"{value}: no such file"))
+        if getattr(sensor, "is_file", False) and not Path(str(sensor.device)).is_file():
+            problems.append(_at(loaded, ("sensors", i, "device"), f"{sensor.device}: no such video file"))
+    return problems
+
+
+def _qtable(loaded: LoadedProfile, state_dir: Path | None, policy: str | None) -> list[str]:
+    """A frozen policy (exploit) with a named table needs that table; learning starts one."""
+    controller = loaded.model.controller
+    if not controller.enabled or (policy or controller.policy) != "exploit" or not controller.table_file:
+        return []
+    if state_dir is None:
+        return []
+    path = state_dir / controller.table_file
+    if not os.path.isfile(path):
+        return [_at(loaded, ("controller", "table_file"), f"{path}: no such Q-table (policy exploit reads it)")]
+    return []

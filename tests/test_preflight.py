@@ -1,0 +1,134 @@
+"""A valid profile checked against this machine before anything starts: files it names,
+the torch device, the Q-table of a frozen policy, a writable state directory."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from respecd.config import read_profile
+from respecd.preflight import check_profile, check_state_dir, device_problem
+
+REPO = Path(__file__).resolve().parents[1]
+SIM = (REPO / "configs" / "sim-rover.yaml").read_text()
+RESPECD = [sys.executable, "-m", "respecd.cli"]
+
+
+def _profile(tmp_path: Path, extra: str, name: str = "p.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(SIM + extra)
+    return path
+
+
+def _line(path: Path, text: str) -> int:
+    return path.read_text().splitlines().index(text) + 1
+
+
+def _run(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([*RESPECD, *args], capture_output=True, text=True, timeout=timeout)
+
+
+def test_shipped_sim_profiles_pass_the_machine_checks(tmp_path: Path) -> None:
+    for name in ("sim-rover", "sim-rover-no-load", "sim-rover-paper-reward"):
+        assert check_profile(read_profile(REPO / "configs" / f"{name}.yaml"), tmp_path) == []
+
+
+def test_missing_weights_are_named_with_their_line(tmp_path: Path) -> None:
+    path = _profile(tmp_path, "perception:\n  weights: /nonexistent/rover.pt\n")
+    line = _line(path, "  weights: /nonexistent/rover.pt")
+    assert check_profile(read_profile(path)) == [
+        f"{path}:{line}: perception.weights: /nonexistent/rover.pt: no such checkpoint file"
+    ]
+    result = _run("check-config", str(path))
+    assert result.returncode == 2 and "Traceback" not in result.stderr and "perception.weights" in result.stderr
+
+
+def test_a_builtin_checkpoint_name_cannot_leave_the_package(tmp_path: Path) -> None:
+    path = _profile(tmp_path, "perception:\n  weights: builtin:../../control/tables/x\n")
+    problem, = check_profile(read_profile(path))
+    assert "perception.weights: builtin:../../control/tables/x: a built-in checkpoint is named by a plain" in problem
+
+
+def test_files_a_sensor_names_must_exist(tmp_path: Path) -> None:
+    extra = (
+        "  - {name: radar2, driver: iwr6843, modality: radar, cli_port: /dev/null, data_port: /dev/null,\n"
+        "     base_cfg: /nonexistent/my.cfg}\n"
+        "  - {name: cam2, driver: uvc, device: /nonexistent/clip.mp4}\n"
+    )
+    path = _profile(tmp_path, extra)
+    problems = check_profile(read_profile(path))
+    radar_line = _line(path, extra.splitlines()[1])  # the key's own line
+    cam_line = _line(path, extra.splitlines()[2])
+    assert problems == [
+        f"{path}:{radar_line}: sensors.5.base_cfg: /nonexistent/my.cfg: no such file",
+        f"{path}:{cam_line}: sensors.6.device: /nonexistent/clip.mp4: no such video file",
+    ]
+
+
+def test_a_frozen_policy_needs_the_table_it_names(tmp_path: Path) -> None:
+    path = _profile(tmp_path, "controller:\n  policy: exploit\n  table_file: rover.npz\n")
+    problem, = check_profile(read_profile(path), tmp_path / "state")
+    assert f"controller.table_file: {tmp_path / 'state' / 'rover.npz'}: no such Q-table" in problem
+    result = _run("check-config", "--state-dir", str(tmp_path / "state"), str(path))
+    assert result.returncode == 2 and "rover.npz: no such Q-table" in result.stderr
+    (tmp_path / "state").mkdir()
+    (tmp_path / "state" / "rover.npz").write_bytes(b"")
+    assert check_profile(read_profile(path), tmp_path / "state") == []
+
+
+@pytest.mark.parametrize("device", ["cuda:99", "tpu", "cuda:x"])
+def test_a_device_this_torch_cannot_use_is_a_profile_error(tmp_path: Path, device: str) -> None:
+    path = _profile(tmp_path, f"perception:\n  device: {device}\n")
+    problem, = check_profile(read_profile(path))
+    assert problem.startswith(f"{path}:{_line(path, f'  device: {device}')}: perception.device: ")
+    assert device_problem("cpu") is None
+
+
+def test_the_daemon_refuses_an_unusable_device_at_start(tmp_path: Path) -> None:
+    path = _profile(tmp_path, "perception:\n  device: cuda:99\n")
+    result = _run("--config", str(path), "--duration", "5", "--state-dir", str(tmp_path / "st"))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"{path}:{_line(path, '  device: cuda:99')}: perception.device: 'cuda:99' cannot be used" in result.stderr
+
+
+@pytest.mark.skipif(torch.version.cuda is not None, reason="this torch has CUDA: spec-rover's device is usable")
+def test_check_config_of_the_real_rover_profile_says_cuda_is_missing() -> None:
+    result = _run("check-config", str(REPO / "configs" / "spec-rover.yaml"))
+    profile = REPO / "configs" / "spec-rover.yaml"
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"spec-rover.yaml:{_line(profile, '  device: cuda')}: perception.device: 'cuda' cannot be used: " \
+           "this torch" in result.stderr
+
+
+def test_state_dir_that_cannot_be_created_stops_the_daemon_at_start(tmp_path: Path) -> None:
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    result = _run("--duration", "5", "--state-dir", str(blocker / "state"))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"--state-dir: {blocker / 'state'}: state directory is not writable" in result.stderr
+
+
+@pytest.mark.skipif(os.geteuid() == 0, reason="root writes through directory permissions (the hardening check "
+                    "mounts a read-only tmpfs instead)")
+def test_read_only_state_dir_is_caught_by_a_real_write(tmp_path: Path) -> None:
+    state = tmp_path / "ro"
+    state.mkdir()
+    state.chmod(0o555)
+    try:
+        assert check_state_dir(state) is not None
+    finally:
+        state.chmod(0o755)
+    assert check_state_dir(state) is None and not list(state.iterdir())  # the probe leaves nothing behind
+
+
+def test_a_frozen_policy_runs_from_a_read_only_state_dir(tmp_path: Path) -> None:
+    """Only learning writes the state directory; exploit may run from a read-only image."""
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    result = _run("--duration", "1", "--policy", "exploit", "--state-dir", str(blocker / "state"), timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]
