@@ -26,13 +26,14 @@ def describe_setting(config: SensorConfig) -> str:
     return "-"
 
 
-def sensor_fields(driver: Driver) -> dict[str, Any]:
+def sensor_fields(driver: Driver, applied: SensorConfig) -> dict[str, Any]:
+    """One sensor's fields: ``applied`` is what it runs (the session's applied configs)."""
     health = driver.health
     measured = health.resolution
     return {
-        "setting": describe_setting(driver.applied),
+        "setting": describe_setting(applied),
         "measured_resolution": f"{measured[0]}x{measured[1]}" if measured else None,
-        "rate_hz": round(driver.applied.rate_hz, 1),
+        "rate_hz": round(applied.rate_hz, 1),
         "measured_hz": round(health.meter.rate_hz, 1),
         "frames": health.frames,
         "errors": health.errors,
@@ -49,10 +50,12 @@ def snapshot(
     percept: Percept | None,
     decision: Decision | None,
     action_name: str | None = None,
+    applied: Mapping[str, SensorConfig] | None = None,
 ) -> dict[str, Any]:
+    applied = applied if applied is not None else {n: d.applied for n, d in drivers.items()}
     fields: dict[str, Any] = {
         "t": round(t, 1),
-        "sensors": {name: sensor_fields(d) for name, d in drivers.items()},
+        "sensors": {name: sensor_fields(d, applied[name]) for name, d in drivers.items()},
         "sync": {
             "rate_hz": round(sync.rate_hz, 1),
             "health": sync.health.value,

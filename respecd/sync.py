@@ -19,7 +19,7 @@ import structlog
 
 from respecd.clock import Clock
 from respecd.drivers.base import Driver
-from respecd.messages import Bundle, Frame, Health, Modality, SyncStats
+from respecd.messages import Bundle, Frame, Health, Modality, SensorConfig, SyncStats
 from respecd.queues import DropOldestQueue
 
 log = structlog.get_logger(__name__)
@@ -93,7 +93,9 @@ class Synchronizer:
 
     ``inputs`` maps sensor name to that sensor's frame queue; the synchronizer drains each
     queue at every tick and keeps only the newest frame (older ones are superseded, not
-    dropped: they were never wanted at this rate).
+    dropped: they were never wanted at this rate). What each sensor runs arrives as
+    messages (``on_config``, subscribed to the session's ``AppliedConfigs``); ``drivers``
+    gives only each sensor's profile entry (its pairing tolerance).
     """
 
     def __init__(
@@ -109,8 +111,11 @@ class Synchronizer:
         thresholds: HealthThresholds | None = None,
         phase: float = 0.5,
         on_tick: Callable[[float, float], None] | None = None,
+        applied: Mapping[str, SensorConfig] | None = None,
     ) -> None:
         self.drivers = drivers
+        # the start configuration; then only what on_config delivers
+        self.applied: dict[str, SensorConfig] = dict(applied or {n: d.applied for n, d in drivers.items()})
         self.inputs = inputs
         self.output = output
         self.clock = clock
@@ -118,13 +123,18 @@ class Synchronizer:
         self.max_rate_hz = max_rate_hz
         self.window = SyncWindow(window_s, thresholds or HealthThresholds())
         self.phase = phase
-        self.on_tick = on_tick  # (scheduled, actual) — used by the pipeline benchmark
+        self.on_tick = on_tick  # (scheduled, actual): the session's tick hook
         self.latest: dict[str, Frame] = {}
         self.last_stats = SyncStats(0.0, 0.0, 0.0, Health.GOOD)
         self.bundles = 0
 
+    def on_config(self, name: str, applied: SensorConfig) -> None:
+        """A sensor's new configuration (rate, enabled): the next tick follows it."""
+        if name in self.drivers:
+            self.applied[name] = applied
+
     def current_rate(self) -> float:
-        rates = [d.applied.rate_hz for d in self.drivers.values() if d.applied.enabled]
+        rates = [c.rate_hz for c in self.applied.values() if c.enabled]
         return tick_rate(rates, self.min_rate_hz, self.max_rate_hz)
 
     async def run(self) -> None:
@@ -150,11 +160,12 @@ class Synchronizer:
         frames: dict[Modality, Frame] = {}
         expected = stale = 0
         for name, driver in self.drivers.items():
-            if not driver.applied.enabled:
+            applied = self.applied[name]
+            if not applied.enabled:
                 continue
             expected += 1
             frame = self.latest.get(name)
-            limit = freshness_limit(driver.config.tolerance_ms / 1000.0, driver.applied.rate_hz)
+            limit = freshness_limit(driver.config.tolerance_ms / 1000.0, applied.rate_hz)
             if frame is None or actual - frame.t > limit or frame.t > actual + 1e-9:
                 stale += 1
                 continue

@@ -212,12 +212,12 @@ def test_detector_compute_enters_the_modelled_power_but_not_measured_rails() -> 
     slot = Slot("cam", "rgb", ((640, 360),), (5.0,))
     powers = {"cam": SensorPower(static_w=1.0, per_hz_w={"default": 0.0})}
     controller = Controller(config, ActionSpace((slot,), "product"), StateSpace(config.factors, Thresholds()), powers)
-    applied = {"cam": SensorConfig("rgb", rate_hz=5.0, resolution=(640, 360))}
-    modelled = controller.step(Observation(t=0.0, n_percepts=5, busy=0.25), applied)
+    controller.follow({"cam": SensorConfig("rgb", rate_hz=5.0, resolution=(640, 360))})
+    modelled = controller.step(Observation(t=0.0, n_percepts=5, busy=0.25))
     assert modelled.terms["power_w"] == pytest.approx(1.0 + 8.0 * 0.25)
-    idle = controller.step(Observation(t=1.0, n_percepts=0, busy=0.0), applied)
+    idle = controller.step(Observation(t=1.0, n_percepts=0, busy=0.0))
     assert idle.terms["power_w"] == pytest.approx(1.0)
-    rails = controller.step(Observation(t=2.0, n_percepts=5, busy=0.25, power_w=6.5), applied)
+    rails = controller.step(Observation(t=2.0, n_percepts=5, busy=0.25, power_w=6.5))
     assert rails.terms["power_w"] == pytest.approx(6.5)
 
 
@@ -251,9 +251,9 @@ def test_controller_charges_a_slow_camera_only_when_the_scene_moves() -> None:
                               reward=RewardWeights(staleness=(0.0, 2.0, 4.0)), learning=Learning(init="zero"))
     slot = Slot("cam", "rgb", ((640, 360),), (1.0,))
     controller = Controller(config, ActionSpace((slot,), "product"), StateSpace(config.factors, Thresholds()))
-    applied = {"cam": SensorConfig("rgb", rate_hz=1.0, resolution=(640, 360))}
-    still = controller.step(Observation(t=0.0, n_percepts=1, motion_image=3.5), applied)
-    fast = controller.step(Observation(t=1.0, n_percepts=1, motion_image=20.0), applied)
+    controller.follow({"cam": SensorConfig("rgb", rate_hz=1.0, resolution=(640, 360))})
+    still = controller.step(Observation(t=0.0, n_percepts=1, motion_image=3.5))
+    fast = controller.step(Observation(t=1.0, n_percepts=1, motion_image=20.0))
     assert still.terms["staleness"] == 0.0
     assert fast.terms["staleness"] == pytest.approx(-4.0 * 0.5)
 

@@ -52,7 +52,7 @@ class Rig:
         self.decisions: list[Decision] = []
         self.hints = 0
         self.stage.on_decision.append(self.decisions.append)
-        self.stage.perception_hint = self._hint
+        self.stage.loop.on_window.append(self._hint)
         self.percepts: DropOldestQueue[Percept] = DropOldestQueue(4, "percepts")
         self.latest: dict = {}
 

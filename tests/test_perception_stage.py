@@ -73,13 +73,14 @@ async def test_stage_runs_detector_in_one_worker_thread_at_the_cadence() -> None
     assert not any(t.name.startswith("perception") for t in threading.enumerate())
 
 
-def test_stage_with_bad_weights_fails_at_construction(tmp_path) -> None:
+async def test_stage_with_bad_weights_fails_to_load(tmp_path) -> None:
     from respecd.errors import ConfigError
 
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not torch")
+    stage = PerceptionStage(PerceptionConfig(weights=str(bad)), profile=None, clock=ManualClock())  # no I/O yet
     with pytest.raises(ConfigError, match="bad.pt"):
-        PerceptionStage(PerceptionConfig(weights=str(bad)), profile=None, clock=ManualClock())
+        await stage.load()
 
 
 async def test_bundles_without_a_new_detector_input_are_skipped() -> None:

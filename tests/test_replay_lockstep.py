@@ -66,25 +66,37 @@ async def test_sleep_until_past_returns_at_once() -> None:
     assert clock.next_deadline() is None
 
 
+class _InstantDetector:
+    """Answers at once: on the lockstep clock only the modelled latency takes time."""
+
+    def infer(self, frames, attribute):  # type: ignore[no-untyped-def]
+        from respecd.messages import Percept
+
+        return Percept(max(f.t for f in frames.values()), (), 0.0, None, 0.001)
+
+
 def test_paced_perception_skips_bundles_like_a_busy_detector() -> None:
     """A 100 ms (modelled) detector fed 30 Hz bundles takes about every third one."""
     import numpy as np
 
     from respecd.messages import Bundle, Frame, Health, Percept, SyncStats
+    from respecd.perception.config import PerceptionConfig
+    from respecd.perception.stage import PerceptionStage
     from respecd.queues import DropOldestQueue
     from respecd.replay.latency import LatencyModel
-    from respecd.replay.pacing import ModelledPercepts, PacedBundles
 
     model = LatencyModel(s_per_pixel=0.1 / (36 * 64), s_per_pixel_attributed=0.3 / (36 * 64), source="test")
     sync = SyncStats(30.0, 0.0, 0.0, Health.GOOD)
 
-    async def main() -> tuple[list[float], list[float], int]:
+    async def main() -> tuple[list[float], list[float], list[float], int]:
         clock = LockstepClock(0.0)
-        bundles = PacedBundles(DropOldestQueue[Bundle](2, "bundles"), clock)
+        bundles = DropOldestQueue[Bundle](2, "bundles")
+        percepts = DropOldestQueue[Percept](64, "percepts")
+        stage = PerceptionStage(PerceptionConfig(attribution_every_s=1000.0), None, clock, _InstantDetector(),
+                                latency_model=model)
         measured: list[float] = []
-        percepts = ModelledPercepts(DropOldestQueue[Percept](4, "percepts"), model, bundles,
-                                    lambda p: measured.append(p.latency))
         taken: list[float] = []
+        stage.on_inference.append(lambda p: (measured.append(p.latency), taken.append(clock.now())))
 
         async def synchronizer() -> None:
             for k in range(1, 61):  # 2 s at 30 Hz
@@ -92,13 +104,7 @@ def test_paced_perception_skips_bundles_like_a_busy_detector() -> None:
                 rgb = Frame("rgb", k / 30, k, np.zeros((36, 64, 3), np.uint8))
                 bundles.put(Bundle(k / 30, {"rgb": rgb}, sync, k))
 
-        async def perception() -> None:
-            while True:
-                bundle = await bundles.get()
-                taken.append(clock.now())
-                percepts.put(Percept(bundle.t, (), 0.0, None, 0.001, bundle))
-
-        tasks = [asyncio.create_task(synchronizer()), asyncio.create_task(perception())]
+        tasks = [asyncio.create_task(synchronizer()), asyncio.create_task(stage.run(bundles, percepts))]
         await clock.run(until=2.0)
         for task in tasks:
             task.cancel()
@@ -106,14 +112,15 @@ def test_paced_perception_skips_bundles_like_a_busy_detector() -> None:
         modelled = []
         while len(percepts):
             modelled.append(percepts.get_nowait().latency)
-        return taken, modelled, bundles.dropped
+        return taken, modelled, measured, bundles.dropped
 
     with asyncio.Runner(loop_factory=LockstepLoop) as runner:
-        taken, modelled, dropped = runner.run(main())
+        taken, modelled, measured, dropped = runner.run(main())
     assert 18 <= len(taken) <= 21  # ~10 per second over 2 s, not 60
     assert all(b - a >= 0.1 - 1e-9 for a, b in zip(taken, taken[1:], strict=False))
     assert dropped > 30  # the rest superseded in the drop-oldest queue, as live
     assert modelled and all(abs(latency - 0.1) < 1e-9 for latency in modelled)
+    assert measured == [0.001] * len(taken)  # observers see the detector's own latency
 
 
 def test_executor_results_come_back_in_submission_order() -> None:

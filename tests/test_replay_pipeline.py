@@ -169,3 +169,81 @@ def test_bad_replay_input_is_exit_2(
     assert main(["--replay", str(log), "--speed", "max", "--log-level", "warning"]) == 2
     err = capsys.readouterr().err
     assert message in err and str(log) in err and "Traceback" not in err
+
+
+def _files(directory: Path) -> dict[str, str]:
+    import hashlib
+
+    return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(directory.iterdir())}
+
+
+def test_replay_reads_but_never_changes_a_live_state_directory(session_log: Path, tmp_path: Path) -> None:
+    state = session_log.parent / "state"
+    before = _files(state)
+    assert any(name.startswith("qtable-") for name in before)  # the live run saved its table
+    assert _replay(session_log, tmp_path / "a.json", "--state-dir", str(state)) == 0
+    assert _files(state) == before  # not renamed aside, not overwritten, nothing added
+    saved = tmp_path / "learned.npz"
+    assert _replay(session_log, tmp_path / "b.json", "--state-dir", str(state), "--save-table", str(saved)) == 0
+    assert _files(state) == before
+    from respecd.control.persist import read_table
+
+    meta, _, _ = read_table(saved)
+    assert meta["updates"] > 0  # --save-table is where the replay's learning goes
+
+
+def _signalled_replay(argv: list[str], wait_for: str, after_s: float) -> tuple[int, str, float]:
+    """Run ``respecd`` ARGV, SIGTERM it ``after_s`` after it logged ``wait_for``; (rc, stderr, stop time)."""
+    import os
+    import signal
+    import time
+
+    argv = [sys.executable, "-m", "respecd.cli", *argv, "--log-format", "json"]
+    with subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                          env={**os.environ, "PYTHONUNBUFFERED": "1"}) as proc:
+        try:
+            assert proc.stdout is not None
+            for line in proc.stdout:
+                if f'"event": "{wait_for}"' in line:
+                    break
+            time.sleep(after_s)
+            sent = time.monotonic()
+            proc.send_signal(signal.SIGTERM)
+            _, err = proc.communicate(timeout=10)
+            elapsed = time.monotonic() - sent
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    return proc.returncode, err, elapsed
+
+
+def test_sigterm_stops_a_replay_with_its_report(session_log: Path, tmp_path: Path) -> None:
+    report = tmp_path / "r.json"
+    rc, err, elapsed = _signalled_replay(["--replay", str(session_log), "--speed", "1", "--report", str(report)],
+                                         "pipeline_up", 1.0)
+    assert rc == 0, err[-2000:]
+    assert elapsed <= 2.0, f"took {elapsed:.2f} s to stop"
+    entry = json.loads(report.read_text())["policies"]["learn"]
+    assert entry["stopped_early"] and 0.5 < entry["replayed_s"] < 3.5
+    assert entry["decisions"]  # what was replayed before the signal is in the report
+
+
+def test_sigterm_while_the_detector_loads_stops_a_lockstep_replay(session_log: Path, tmp_path: Path) -> None:
+    from respecd.errors import ConfigError
+    from respecd.perception.checkpoint import resolve
+
+    try:
+        resolve("builtin:sim-rover")
+    except ConfigError:
+        pytest.skip("no built-in detector checkpoint (run `make weights`)")
+    profile = yaml.safe_load((session_log.parent / "profile.yaml").read_text())
+    profile["perception"] = {"enabled": True}
+    config = tmp_path / "with-detector.yaml"
+    config.write_text(yaml.safe_dump(profile))
+    report = tmp_path / "r.json"
+    argv = ["--replay", str(session_log), "--speed", "max", "--config", str(config), "--report", str(report)]
+    rc, err, elapsed = _signalled_replay(argv, "detector_loading", 0.0)
+    assert rc == 0, err[-2000:]
+    assert elapsed <= 2.0, f"took {elapsed:.2f} s to stop"
+    entry = json.loads(report.read_text())["policies"]["learn"]
+    assert entry["stopped_early"] and entry["replayed_s"] == 0.0

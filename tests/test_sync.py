@@ -69,7 +69,7 @@ def test_tick_rate_ignores_disabled_sensors():
     fast, slow = make("cam", "rgb", 30.0), make("th", "thermal", 9.0)
     sync, *_ = rig(fast, slow, max_rate=27.0)
     assert sync.current_rate() == 27.0  # the paper's Jetson cap
-    fast.applied = replace(fast.applied, enabled=False)
+    sync.on_config("cam", replace(fast.applied, enabled=False))  # a config message, not a driver attribute
     assert sync.current_rate() == 9.0
 
 
@@ -147,7 +147,7 @@ async def test_run_ticks_at_sensor_rate_on_the_clock():
     task.cancel()
     await asyncio.gather(task, return_exceptions=True)
     assert 9 <= sync.bundles <= 11
-    await cam.apply(replace(cam.applied, rate_hz=25.0))
+    sync.on_config("cam", await cam.apply(replace(cam.applied, rate_hz=25.0)))
     assert sync.current_rate() == 25.0
 
 

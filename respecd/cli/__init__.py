@@ -42,8 +42,23 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    """Parse and run one command; its exit status (2: bad input, said in one line each)."""
+    return _run(build_parser().parse_args(argv))
+
+
+def entry() -> None:
+    """The console script (and ``python -m respecd.cli``): like ``main``, but the daemon and a
+    replay end the process without the interpreter's teardown (``run.exit_now``)."""
+    args = build_parser().parse_args()
+    status = _run(args)
+    if args.command is None:
+        from respecd.cli.run import exit_now
+
+        exit_now(status)
+    sys.exit(status)
+
+
+def _run(args: argparse.Namespace) -> int:
     module_name = COMMANDS[args.command][0] if args.command else "respecd.cli.run"
     try:
         return int(importlib.import_module(module_name).main(args) or 0)

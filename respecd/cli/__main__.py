@@ -1,7 +1,5 @@
 """``python -m respecd.cli``: the same entry point as the ``respecd`` console script."""
 
-import sys
+from respecd.cli import entry
 
-from respecd.cli import main
-
-sys.exit(main())
+entry()

@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import os
-import signal
 import sys
 from typing import Any
 
@@ -50,22 +49,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="replay speed: real time, twice, or as fast as possible in lockstep (deterministic)",
     )
     parser.add_argument("--report", metavar="OUT.json", help="replay: write a report (JSON + PNG timeline)")
+    parser.add_argument("--save-table", metavar="PATH",
+                        help="replay: write the Q-table the replay learned here (a replay never writes the state "
+                             "directory; with --state-dir it only reads the table there)")
 
 
 def main(args: argparse.Namespace) -> int:
+    """The daemon, or ``--replay``; SIGTERM/SIGINT stop either cleanly from the first moment."""
     from respecd.logs import configure_logging
+    from respecd.signals import StopSignals
 
-    fmt = configure_logging(args.log_format, args.log_level)
-    if args.replay:
-        from respecd.replay.run import run_replay
+    with StopSignals() as signals:
+        fmt = configure_logging(args.log_format, args.log_level)
+        if args.replay:
+            from respecd.replay.run import run_replay
 
-        return run_replay(args)
-    loaded = read_profile(args.config)
-    state_dir = prepare_state_dir(args.state_dir)
-    preflight(loaded, state_dir, args.policy)
-    status = asyncio.run(run_live(loaded.model, args, console=fmt == "console", state_dir=state_dir))
-    exit_now(status)
-    return status  # not reached
+            return run_replay(args, signals)
+        loaded = read_profile(args.config)
+        state_dir = prepare_state_dir(args.state_dir)
+        preflight(loaded, state_dir, args.policy)
+        return asyncio.run(run_live(loaded.model, args, signals, console=fmt == "console", state_dir=state_dir))
 
 
 def prepare_state_dir(cli_value: str | None) -> Any:
@@ -116,51 +119,36 @@ def make_recorder(profile: Any, path: str | None, clock: Any) -> Any:
     return Recorder(config, profile, clock)
 
 
-async def run_live(profile: Any, args: argparse.Namespace, console: bool, state_dir: Any) -> int:
+async def run_live(profile: Any, args: argparse.Namespace, signals: Any, console: bool, state_dir: Any) -> int:
     from respecd.clock import MonotonicClock
-    from respecd.daemon import Daemon
     from respecd.drivers.base import DriverContext
     from respecd.sdnotify import Notifier
+    from respecd.session import Session
 
+    stop = signals.bind()
     clock = MonotonicClock()
     if args.seed is not None:
         profile = profile.model_copy(update={"controller": profile.controller.model_copy(update={"seed": args.seed})})
     context = DriverContext(seed=args.seed or 0, simulation=getattr(profile, "simulation", None))
     recorder = make_recorder(profile, args.record, clock)
-    if recorder is not None:
-        recorder.start()
-    daemon = Daemon(
-        profile,
-        clock,
-        context,
-        policy=args.policy,
-        state_dir=state_dir,
-        taps=[recorder] if recorder is not None else [],
-        status_sink=status_printer(console),
-        notifier=Notifier(),
-    )
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
-    try:
-        await daemon.run(duration=args.duration, stop=stop)
-    finally:
-        for sig in (signal.SIGTERM, signal.SIGINT):
-            loop.remove_signal_handler(sig)
-    if daemon.lingering:
-        log.warning("abandoning_inflight_work", tasks=daemon.lingering)
+    session = Session(profile, clock, context, policy=args.policy, state_dir=state_dir,
+                      observers=[recorder] if recorder is not None else [],
+                      status_sink=status_printer(console), notifier=Notifier())
+    await session.run(duration=args.duration, stop=stop)
+    if session.lingering:
+        log.warning("abandoning_inflight_work", tasks=session.lingering)
     return 0
 
 
 def exit_now(status: int) -> None:
     """End the process without the interpreter's teardown.
 
-    Called once the daemon has shut down: the Q-table is saved, the log finished and
-    stdout flushed here. What is left is an inference that may still be running in its
-    worker thread (it cannot be interrupted and nobody wants its result) and torch's
-    module teardown; together they took 0.8-2 s on a loaded 2-core machine, which would
-    break the ~2 s SIGTERM budget that systemd's stop relies on.
+    Called by the console script once the daemon or a replay has shut down (or failed to
+    start): the Q-table is saved, the log and report finished, and stdout flushed here.
+    What is left is an inference that may still be running in its worker thread (it cannot
+    be interrupted and nobody wants its result), a checkpoint still loading when a signal
+    ended the start, and torch's module teardown; together they took 0.8-2 s on a loaded
+    2-core machine, which would break the ~2 s SIGTERM budget that systemd's stop relies on.
     """
     sys.stdout.flush()
     sys.stderr.flush()

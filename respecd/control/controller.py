@@ -1,11 +1,12 @@
 """The decision step, without asyncio: observation in, ``Decision`` out.
 
-``Controller.step(observation, applied)`` does, in order: bin the state; compute the reward
+``Controller.step(observation)`` does, in order: bin the state; compute the reward
 of the previous action (ConfAgg change, power, latency, switch); in ``learn`` mode apply
 the Watkins update to the previous (state, action); choose the next action (ε-greedy,
 greedy in ``exploit``, or a baseline's target); hold it if the minimum dwell time since the
 last switch has not passed. It is deterministic for a given seed and sequence of
-observations, so policy training (issue #7) and replay can drive it in a plain loop.
+observations. ``follow(applied)`` tells it what the sensors really run (the control loop
+calls it on every configuration message), so a clamped or failed apply moves it back.
 """
 
 from __future__ import annotations
@@ -53,7 +54,8 @@ class Controller:
         self._switched = False
         self._last_switch_t = -math.inf
         self._model_cache: tuple[Position, float] | None = None
-        self._applied_seen: tuple[SensorConfig, ...] | None = None
+        self._applied: Mapping[str, SensorConfig] | None = None
+        self._applied_changed = False
         self._applied_power: float | None = None
         self._learned: LearnedStates | None = None
 
@@ -94,9 +96,17 @@ class Controller:
             return self.space.describe(action)
         return self.space.describe_position(self.space.position_of(action))
 
-    def step(self, obs: Observation, applied: Mapping[str, SensorConfig] | None = None) -> Decision:
-        """One decision. ``applied``: what each sensor (by name) really runs now."""
-        if applied and not self._same_applied(applied):
+    def follow(self, applied: Mapping[str, SensorConfig]) -> None:
+        """What each sensor (by name) really runs changed: the next step starts from it."""
+        self._applied = applied
+        self._applied_changed = True
+
+    def step(self, obs: Observation) -> Decision:
+        """One decision from the window's observation."""
+        applied = self._applied
+        if applied and self._applied_changed:
+            self._applied_changed = False
+            self._applied_power = None
             self.position = self._resync(applied)
         bins = self.states.bins(obs)
         state = self.states.index(bins)
@@ -168,16 +178,6 @@ class Controller:
         if self._learned is None or self._learned.version != self.table.updates:
             self._learned = LearnedStates(self.table, self.states, self.config.learning.exploit_min_visits)
         return self._learned
-
-    def _same_applied(self, applied: Mapping[str, SensorConfig]) -> bool:
-        """True when ``applied`` holds the very objects of the last step (nothing re-applied)."""
-        values = tuple(applied.values())
-        last = self._applied_seen
-        if last is not None and len(last) == len(values) and all(a is b for a, b in zip(last, values, strict=True)):
-            return True
-        self._applied_seen = values
-        self._applied_power = None
-        return False
 
     def _resync(self, applied: Mapping[str, SensorConfig]) -> Position:
         """Follow what the drivers really run (a failed or clamped apply moves us back)."""

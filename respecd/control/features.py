@@ -113,14 +113,18 @@ class Window:
         return len(self._samples)
 
     def observe(
-        self, now: float, cpu: float | None = None, gpu: float | None = None, power_w: float | None = None
+        self, now: float, cpu: float | None = None, gpu: float | None = None, power_w: float | None = None,
+        busy: float | None = None,
     ) -> Observation:
-        """Average the window ending at ``now``; ``cpu``/``gpu`` are shares 0..1."""
+        """Average the window ending at ``now``; ``cpu``/``gpu`` are shares 0..1; ``busy``
+        replaces the detector busy share the samples add up to (a trainer that scores a few
+        instants per window knows the share of every inference the window really held)."""
         while self._samples and self._samples[0].t <= now - self.window_s:
             self._samples.popleft()
         s = list(self._samples)
         latency = _mean([x.latency_s for x in s]) or 0.0
-        busy = sum(x.latency_s for x in s) / self.window_s
+        if busy is None:
+            busy = sum(x.latency_s for x in s) / self.window_s
         load = max(cpu or 0.0, gpu or 0.0, min(latency / self.latency_budget_s, 1.0))
         levels = [x.sync_level for x in s if x.sync_level is not None]
         return Observation(

@@ -129,21 +129,31 @@ def _arrays(path: Path, data: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         return data["q"], data["visits"], data["meta"]
 
 
-def load_into(path: Path, table: QTable, layout: dict[str, Any]) -> bool:
-    """Restore ``table`` from ``path`` if it matches; set a bad file aside. True if loaded."""
+def load_into(path: Path, table: QTable, layout: dict[str, Any], set_aside: bool = True) -> bool:
+    """Restore ``table`` from ``path`` if it matches; True if loaded. A bad file is set aside
+    (``set_aside``, the live state directory's own table) or only reported (a replay reading
+    a robot's table must leave it as it is)."""
     if not path.exists():
         return False
     try:
         meta, q, visits = read_table(path)
     except InputError as err:
-        _set_aside(path, "corrupt", str(err))
+        _unusable(path, "corrupt", str(err), set_aside)
         return False
     if meta.get("fingerprint") != fingerprint(layout) or q.shape != table.shape:
-        _set_aside(path, "mismatch", f"table is for another state/action space (fingerprint {meta.get('fingerprint')})")
+        detail = f"table is for another state/action space (fingerprint {meta.get('fingerprint')})"
+        _unusable(path, "mismatch", detail, set_aside)
         return False
     table.restore(q, visits, int(meta.get("updates", 0)), float(meta.get("epsilon", table.epsilon)))
     log.info("qtable_loaded", path=str(path), updates=table.updates, epsilon=round(table.epsilon, 4))
     return True
+
+
+def _unusable(path: Path, reason: str, detail: str, set_aside: bool) -> None:
+    if set_aside:
+        _set_aside(path, reason, detail)
+    else:
+        log.warning("qtable_not_used", path=str(path), reason=reason, detail=detail)
 
 
 def _set_aside(path: Path, reason: str, detail: str) -> None:

@@ -27,6 +27,7 @@ class SystemSample:
     cpu: float | None  # busy share of all cores since the last read, 0..1
     gpu: float | None  # GPU load 0..1 (Jetson devfreq)
     power_w: float | None  # board input power from the rails
+    busy: float | None = None  # detector busy share of the window, where known better than its samples say
 
 
 def _read_int(path: Path) -> int | None:

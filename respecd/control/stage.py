@@ -1,29 +1,30 @@
-"""The controller task: feeds the pure ``Controller`` from percepts and applies its choice.
+"""The controller stage: the daemon's side of the control loop.
 
-Two coroutines run under ``run``: one drains the percept queue into the sliding window
-(cheap per-percept features), the other wakes every ``decision_period_s`` on the injected
-clock, reads system signals (worker thread), steps the controller, applies the new
-configuration to every affected driver concurrently (each with a timeout; a failing driver
-is logged and the rest proceed; it is retried at the next decision), and publishes the
-decision to the taps. The Q-table is loaded when ``run`` first starts and saved every
-``save_every`` updates and on ``close``.
+It turns percepts into the loop's samples (per-percept features, on the loop thread), gives
+the loop the drivers to apply decisions to (each with a timeout, concurrently; a failing
+driver is logged and retried at the next decision) and the system probe (worker thread),
+and keeps the Q-table on disk: loaded when ``run`` first starts, saved every ``save_every``
+updates and on ``close``. The decision itself is ``ControlLoop``'s, the same code a replay,
+policy training and the scenario benchmark run.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-from collections.abc import Callable
-from dataclasses import replace
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import structlog
 
+from respecd.applied import AppliedConfigs
 from respecd.clock import Clock
 from respecd.control.config import ControllerConfig
 from respecd.control.controller import Controller
-from respecd.control.features import FeatureExtractor, Window
+from respecd.control.features import FeatureExtractor
+from respecd.control.loop import ControlLoop
 from respecd.control.persist import load_into, save_table, table_path
 from respecd.control.probe import SystemProbe, SystemSample
 from respecd.control.shipped import load_shipped
@@ -35,150 +36,40 @@ from respecd.sensors import Capabilities
 
 log = structlog.get_logger(__name__)
 
-STARVED_WARN_AFTER = 5  # empty windows in a row before warning (a slow detector skips some)
+
+@dataclass(frozen=True)
+class TableFiles:
+    """Where a run's Q-table comes from and where it goes.
+
+    A live run reads and writes its state directory's table and renames a bad one aside; a
+    replay reads one without ever changing it, and writes only where it is told to.
+    """
+
+    load: Path | None
+    save: Path | None
+    set_aside: bool = False
+
+    @classmethod
+    def state_dir(cls, directory: Path, config: ControllerConfig, profile_name: str) -> TableFiles:
+        path = table_path(Path(directory), config.table_file, profile_name)
+        return cls(path, path, set_aside=True)
 
 
-class ControllerStage:
-    """Owns the controller of one run; the daemon constructs it and runs ``run``."""
+class DriverSensors:
+    """The loop's ``Sensors`` on drivers: every apply concurrently, each with a timeout."""
 
-    def __init__(
-        self,
-        config: ControllerConfig,
-        profile: Any,
-        drivers: dict[str, Driver],
-        clock: Clock,
-        state_dir: Path,
-    ) -> None:
-        self.config = config
-        self.profile = profile
+    def __init__(self, drivers: Mapping[str, Driver], timeout_s: float) -> None:
         self.drivers = drivers
-        self.clock = clock
-        self.controller = Controller.from_profile(config, profile, _capabilities(drivers))
-        self.applied: dict[str, SensorConfig] = {name: d.applied for name, d in drivers.items()}
-        self.controller.position = self.controller.space.nearest(self.applied)
-        self.table_path = table_path(Path(state_dir), config.table_file, profile.name)
-        self.last: Decision | None = None
-        self.on_decision: list[Callable[[Decision], None]] = []
-        self.perception_hint: Callable[[], None] | None = None
-        self._features = FeatureExtractor()
-        self._window = Window(config.window_s, config.latency_budget_s)
-        self._requested: dict[str, SensorConfig] = {}
-        self._probe: SystemProbe | None = None
-        self._prepared = False
-        self._saved_updates = 0
-        self._starved = 0  # consecutive decision windows without a percept
+        self.timeout_s = timeout_s
 
-    # public ---------------------------------------------------------------------------
-    def describe_action(self, action: int) -> str:
-        return self.controller.describe_action(action)
-
-    def describe_state(self, bins: tuple[int, ...]) -> str:
-        return self.controller.states.describe(bins)
-
-    async def run(self, percepts: DropOldestQueue[Percept]) -> None:
-        """Forever: gather percepts, decide every period. Cancel to stop (then ``close``)."""
-        await self._prepare()
-        tasks = [
-            asyncio.create_task(self._consume(percepts), name="controller-percepts"),
-            asyncio.create_task(self._decide_forever(), name="controller-decide"),
-        ]
-        try:
-            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_EXCEPTION)
-            for task in done:
-                task.result()  # re-raise a crash for the supervisor
-        finally:
-            for task in tasks:
-                task.cancel()
-            await asyncio.gather(*tasks, return_exceptions=True)
-
-    async def close(self) -> None:
-        """Save the Q-table (learn mode) so the next start resumes from it."""
-        if self._prepared and self.config.policy == "learn":
-            await self._save()
-
-    # internals ------------------------------------------------------------------------
-    async def _prepare(self) -> None:
-        if self._prepared:
-            return  # a supervisor restart keeps the learned table in memory
-        table = self.controller.table
-        if table is not None:
-            layout = self.controller.layout()
-            loaded = await asyncio.to_thread(load_into, self.table_path, table, layout)
-            if not loaded and self.config.policy == "exploit":  # nothing learned here yet: the shipped table
-                loaded = await asyncio.to_thread(load_shipped, table, layout)
-            self._saved_updates = table.updates
-            if not loaded and self.config.policy == "exploit":
-                log.warning("exploit_without_table", path=str(self.table_path))
-        if self.config.system_probe:
-            rails = self.profile.telemetry.power_rails == "auto"
-            self._probe = await asyncio.to_thread(SystemProbe, Path("/"), rails)
-            await asyncio.to_thread(self._probe.read)  # prime the CPU counters
-        self._prepared = True
-        log.info(
-            "controller_ready",
-            policy=self.config.policy,
-            states=self.controller.states.size,
-            actions=self.controller.space.n,
-            table_columns=self.controller.space.columns,
-            table=str(self.table_path),
-        )
-
-    async def _consume(self, percepts: DropOldestQueue[Percept]) -> None:
-        while True:
-            percept = await percepts.get()
-            # stamped on arrival: with a slow detector percept.t lags the clock by its latency.
-            # Features stay on the loop (~0.3 ms for 720p): a thread hop would let a lockstep
-            # replay's decision see or miss this percept depending on thread timing.
-            self._window.add(self._features.sample(percept, self.clock.now()))
-
-    async def _decide_forever(self) -> None:
-        period = self.config.decision_period_s
-        next_t = self.clock.now() + period
-        while True:
-            await self.clock.sleep_until(next_t)
-            await self.decide(self.clock.now())
-            next_t += period
-            if next_t <= self.clock.now():  # fell behind (slow apply): skip, do not burst
-                next_t = self.clock.now() + period
-
-    async def decide(self, now: float) -> Decision | None:
-        """One decision at ``now``; None when the window held no percept."""
-        system = await asyncio.to_thread(self._probe.read) if self._probe else SystemSample(None, None, None)
-        obs = self._window.observe(now, system.cpu, system.gpu, system.power_w)
-        self._hint()
-        if obs.n_percepts == 0:  # nothing new seen: no state, no reward, no learning
-            self._starved += 1
-            if self._starved == STARVED_WARN_AFTER:
-                log.warning("controller_no_percepts", windows=self._starved, window_s=self.config.window_s)
-            return None
-        if self._starved >= STARVED_WARN_AFTER:
-            log.info("controller_percepts_back", after_windows=self._starved)
-        self._starved = 0
-        decision = self.controller.step(obs, self.applied)
-        applied = await self._apply(decision.configs)
-        decision = replace(decision, configs=applied)
-        self.last = decision
-        self._publish(decision)
-        await self._maybe_save()
-        return decision
-
-    async def _apply(self, requests: tuple[SensorConfig, ...]) -> tuple[SensorConfig, ...]:
-        names = [slot.name for slot in self.controller.space.slots]
-        changed = {
-            name: req
-            for name, req in zip(names, requests, strict=True)
-            if name in self.drivers and self._requested.get(name) != req
-        }
-        results = await asyncio.gather(*(self._apply_one(n, r) for n, r in changed.items()))
-        for name, result in zip(changed, results, strict=True):
-            if result is not None:
-                self.applied[name] = result
-                self._requested[name] = changed[name]
-        return tuple(self.applied.get(n, r) for n, r in zip(names, requests, strict=True))
+    async def apply(self, requests: Mapping[str, SensorConfig]) -> dict[str, SensorConfig | None]:
+        names = list(requests)
+        results = await asyncio.gather(*(self._apply_one(n, requests[n]) for n in names))
+        return dict(zip(names, results, strict=True))
 
     async def _apply_one(self, name: str, request: SensorConfig) -> SensorConfig | None:
         try:
-            applied = await asyncio.wait_for(self.drivers[name].apply(request), self.config.apply_timeout_s)
+            applied = await asyncio.wait_for(self.drivers[name].apply(request), self.timeout_s)
         except (DriverError, asyncio.TimeoutError) as err:
             log.warning("apply_failed", sensor=name, error=repr(err))
             return None
@@ -189,7 +80,121 @@ class ControllerStage:
             log.info("apply_clamped", sensor=name, notes=list(applied.notes))
         return applied
 
-    def _publish(self, decision: Decision) -> None:
+
+class ThreadedProbe:
+    """The loop's ``LoadProbe`` on /proc and sysfs: reads run in a worker thread."""
+
+    def __init__(self, probe: SystemProbe) -> None:
+        self.probe = probe
+
+    async def read(self) -> SystemSample:
+        return await asyncio.to_thread(self.probe.read)
+
+
+class ControllerStage:
+    """Owns the controller of one run; the session constructs it and runs ``run``."""
+
+    def __init__(
+        self,
+        config: ControllerConfig,
+        profile: Any,
+        drivers: dict[str, Driver],
+        clock: Clock,
+        state_dir: Path | None = None,
+        applied: AppliedConfigs | None = None,
+        tables: TableFiles | None = None,
+    ) -> None:
+        self.config = config
+        self.profile = profile
+        self.drivers = drivers
+        self.clock = clock
+        self.controller = Controller.from_profile(config, profile, _capabilities(drivers))
+        self.applied = applied if applied is not None else AppliedConfigs({n: d.applied for n, d in drivers.items()})
+        self.tables = tables or TableFiles.state_dir(state_dir or Path("."), config, profile.name)
+        self.table_path = self.tables.load or self.tables.save
+        self.loop = ControlLoop(self.controller, clock, DriverSensors(drivers, config.apply_timeout_s), self.applied)
+        self.loop.on_decision.append(self._log_decision)
+        self.loop.after_decision = self._maybe_save
+        self._features = FeatureExtractor()
+        self._prepared = False
+        self._saved_updates = 0
+
+    # public ---------------------------------------------------------------------------
+    @property
+    def on_decision(self) -> list[Callable[[Decision], None]]:
+        return self.loop.on_decision
+
+    @property
+    def last(self) -> Decision | None:
+        return self.loop.last
+
+    def describe_action(self, action: int) -> str:
+        return self.controller.describe_action(action)
+
+    def describe_state(self, bins: tuple[int, ...]) -> str:
+        return self.controller.states.describe(bins)
+
+    async def run(self, percepts: DropOldestQueue[Percept]) -> None:
+        """Forever: percepts into the window, a decision every period. Cancel to stop (then ``close``)."""
+        await self.prepare()
+        tasks = [
+            asyncio.create_task(self._consume(percepts), name="controller-percepts"),
+            asyncio.create_task(self.loop.run(), name="controller-decide"),
+        ]
+        try:
+            done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_EXCEPTION)
+            for task in done:
+                task.result()  # re-raise a crash for the supervisor
+        finally:
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+
+    async def decide(self, now: float) -> Decision | None:
+        return await self.loop.decide(now)
+
+    async def close(self) -> None:
+        """Save the Q-table (learn mode) so the next start resumes from it."""
+        if self._prepared and self.config.policy == "learn":
+            await self._save()
+
+    async def prepare(self) -> None:
+        """Load the Q-table and prime the system probe (once: a supervisor restart keeps the table)."""
+        if self._prepared:
+            return
+        table = self.controller.table
+        if table is not None:
+            layout = self.controller.layout()
+            loaded = False
+            if self.tables.load is not None:
+                loaded = await asyncio.to_thread(load_into, self.tables.load, table, layout, self.tables.set_aside)
+            if not loaded and self.config.policy == "exploit":  # nothing learned here yet: the shipped table
+                loaded = await asyncio.to_thread(load_shipped, table, layout)
+            self._saved_updates = table.updates
+            if not loaded and self.config.policy == "exploit":
+                log.warning("exploit_without_table", path=str(self.table_path))
+        if self.config.system_probe:
+            rails = self.profile.telemetry.power_rails == "auto"
+            probe = await asyncio.to_thread(SystemProbe, Path("/"), rails)
+            await asyncio.to_thread(probe.read)  # prime the CPU counters
+            self.loop.probe = ThreadedProbe(probe)
+        self._prepared = True
+        log.info("controller_ready", policy=self.config.policy, states=self.controller.states.size,
+                 actions=self.controller.space.n, table_columns=self.controller.space.columns,
+                 table=str(self.table_path))
+
+    _prepare = prepare  # the name the tests used
+
+    # internals ------------------------------------------------------------------------
+    async def _consume(self, percepts: DropOldestQueue[Percept]) -> None:
+        while True:
+            percept = await percepts.get()
+            # stamped on arrival: with a slow detector percept.t lags the clock by its latency.
+            # Features stay on the loop (~0.3 ms for 720p): a thread hop would let a lockstep
+            # replay's decision see or miss this percept depending on thread timing.
+            self.loop.add(self._features.sample(percept, self.clock.now()))
+
+    def _log_decision(self, decision: Decision) -> None:
         log.info(
             "decision",
             state=self.describe_state(decision.state),
@@ -199,20 +204,8 @@ class ControllerStage:
             held=bool(decision.terms.get("held")),
             **{k: round(v, 4) for k, v in decision.terms.items() if k not in ("reward", "held")},
         )
-        for tap in self.on_decision:
-            try:
-                tap(decision)
-            except Exception:  # a broken recorder must not stop control
-                log.exception("decision_tap_failed")
 
-    def _hint(self) -> None:
-        if self.perception_hint is not None:
-            try:
-                self.perception_hint()
-            except Exception:
-                log.exception("perception_hint_failed")
-
-    async def _maybe_save(self) -> None:
+    async def _maybe_save(self, decision: Decision) -> None:
         table = self.controller.table
         if self.config.policy == "learn" and table is not None:
             if table.updates - self._saved_updates >= self.config.save_every:
@@ -220,19 +213,19 @@ class ControllerStage:
 
     async def _save(self) -> None:
         table = self.controller.table
-        if table is None:
+        if table is None or self.tables.save is None:
             return
         info = {"profile": self.profile.name, "policy": self.config.policy}
         try:
-            await asyncio.to_thread(save_table, self.table_path, table, self.controller.layout(), info)
+            await asyncio.to_thread(save_table, self.tables.save, table, self.controller.layout(), info)
         except OSError as err:
-            log.error("qtable_save_failed", path=str(self.table_path), error=str(err))
+            log.error("qtable_save_failed", path=str(self.tables.save), error=str(err))
             return
         self._saved_updates = table.updates
-        log.info("qtable_saved", path=str(self.table_path), updates=table.updates)
+        log.info("qtable_saved", path=str(self.tables.save), updates=table.updates)
 
 
-def _capabilities(drivers: dict[str, Driver]) -> dict[str, Capabilities]:
+def _capabilities(drivers: Mapping[str, Driver]) -> dict[str, Capabilities]:
     caps = {}
     for name, driver in drivers.items():
         with contextlib.suppress(Exception):  # capabilities may need start(); fall back to the profile

@@ -55,6 +55,11 @@ class FusionDetector:
                  trained_on=payload.get("data"))
         return cls(model, config, calibration)
 
+    def reset_scene_scores(self) -> None:
+        """Forget the decaying scene score: the next attribution stands on its own (an
+        offline evaluator scores each call alone and applies the decay itself)."""
+        self.scores = SceneScores(self.channels, self.config.attribution_decay_s)
+
     def prepare(self, frames: dict[str, Frame]) -> AlignedInput:
         return self.aligner.align(frames)
 

@@ -2,16 +2,24 @@
 
 Torch work never runs on the event loop: one dedicated single-thread executor does every
 ``infer`` (so the detector's state, e.g. the decaying scene score, is only ever touched by
-that thread). Attribution runs at the profile's cadence, or at the next bundle after
-``request_attribution()`` (the controller asks once per decision window).
+that thread), and the checkpoint is loaded in a worker thread by ``load`` (the loop keeps
+answering signals meanwhile). Attribution runs at the profile's cadence, or at the next
+bundle after ``request_attribution()`` (the controller asks once per decision window).
+
+A lockstep replay gives the stage a ``LatencyModel``: the clock stands still while the
+detector runs, so the stage stays busy for the modelled latency on the log's clock before
+it takes the next bundle (a slow detector skips bundles as it did on the robot), and the
+percept carries the modelled latency downstream; ``on_inference`` observers see each
+percept as the detector produced it (measured latency).
 """
 
 from __future__ import annotations
 
 import asyncio
 import dataclasses
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from typing import Any, Protocol
 
 import structlog
 
@@ -23,6 +31,12 @@ from respecd.queues import DropOldestQueue
 log = structlog.get_logger(__name__)
 
 SHUTDOWN_TIMEOUT_S = 5.0  # longer than one forward+attribution at 1280x720 on a 2-core CPU
+
+
+class LatencyModel(Protocol):
+    """Perception latency as the robot's detector would have had it (``replay.latency``)."""
+
+    def apply(self, percept: Percept) -> Percept: ...
 
 
 def calibration_from_profile(profile: Any) -> dict[str, Any]:
@@ -37,19 +51,24 @@ def calibration_from_profile(profile: Any) -> dict[str, Any]:
 class PerceptionStage:
     """Runs the fusion detector on each bundle.
 
-    The checkpoint is loaded here, so a bad or mismatched one fails the start (exit 2)
-    rather than a supervised task. ``last`` is the newest Percept for the status line,
+    The checkpoint is loaded by ``load`` before the session starts the pipeline, so a bad or
+    mismatched one fails the start (exit 2) rather than a supervised task; the session races
+    it against a stop signal. ``last`` is the newest Percept for the status line,
     with the most recent scene contributions carried over between attributions (the
     Percepts on the queue keep ``contributions=None`` when not attributed).
     """
 
-    def __init__(self, config: PerceptionConfig, profile: Any, clock: Clock, detector: Any = None) -> None:
+    def __init__(self, config: PerceptionConfig, profile: Any, clock: Clock, detector: Any = None,
+                 latency_model: LatencyModel | None = None) -> None:
         self.config = config
         self.profile = profile
         self.clock = clock
         self.last: Percept | None = None
         self.processed = 0
-        self._detector = detector if detector is not None else self._load()
+        self.latency_model = latency_model
+        self.on_inference: list[Callable[[Percept], None]] = []  # as produced, before any latency model
+        self._detector = detector
+        self._busy_until = float("-inf")
         self._contributions: dict[str, float] | None = None
         self._executor: ThreadPoolExecutor | None = None
         self._attribution_requested = False
@@ -62,13 +81,31 @@ class PerceptionStage:
         """Attribute the next bundle, whatever the cadence says."""
         self._attribution_requested = True
 
+    async def load(self) -> None:
+        """Load the checkpoint in a worker thread of its own (ConfigError when it is bad); once.
+
+        Not the loop's default executor: when a stop signal abandons the start, nobody waits
+        for a load still running there (``asyncio.run`` would join the default executor)."""
+        if self._detector is not None:
+            return
+        log.info("detector_loading", weights=self.config.weights)
+        executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="perception-load")
+        try:
+            self._detector = await asyncio.get_running_loop().run_in_executor(executor, self._load)
+        finally:
+            executor.shutdown(wait=False)
+
     async def run(self, bundles: DropOldestQueue[Bundle], percepts: DropOldestQueue[Percept]) -> None:
         """Forever: bundle -> detector (worker thread) -> Percept(bundle=...) on ``percepts``."""
+        await self.load()
         loop = asyncio.get_running_loop()
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="perception")
         try:
             while True:
+                if self.latency_model is not None:
+                    await self.clock.sleep_until(self._busy_until)  # still busy on the modelled clock
                 bundle = await bundles.get()
+                taken = self.clock.now()
                 if not self._has_new_input(bundle):
                     self.skipped += 1
                     continue
@@ -80,6 +117,11 @@ class PerceptionStage:
                 shown = percept if percept.contributions is not None else None
                 self.last = shown or dataclasses.replace(percept, contributions=self._contributions)
                 self.processed += 1
+                for hook in self.on_inference:
+                    hook(percept)
+                if self.latency_model is not None:
+                    percept = self.latency_model.apply(percept)
+                    self._busy_until = taken + percept.latency
                 percepts.put(percept)
         finally:
             await self._shutdown()

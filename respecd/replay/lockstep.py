@@ -105,7 +105,7 @@ class LockstepClock(ManualClock):
         """Drive time to ``until``, until nothing is left to wake, or until ``done()``."""
         loop = asyncio.get_running_loop()
         while True:
-            await settle(loop)
+            await settle(loop, done)
             deadline = self.next_deadline()
             if deadline is None or deadline > until or (done is not None and done()):
                 return
@@ -114,11 +114,14 @@ class LockstepClock(ManualClock):
                 on_step(t)
 
 
-async def settle(loop: asyncio.AbstractEventLoop) -> None:
-    """Return once every callback and executor job caused so far has run its course."""
+async def settle(loop: asyncio.AbstractEventLoop, done: Callable[[], bool] | None = None) -> None:
+    """Return once every callback and executor job caused so far has run its course, or
+    once ``done()`` (a run that ended does not wait for a job nobody needs any more)."""
     idle_checks = 0
     while idle_checks < 2:  # twice in a row: a callback may schedule one more round
         await asyncio.sleep(0)
+        if done is not None and done():
+            return
         if isinstance(loop, LockstepLoop):
             if loop.in_flight and not loop._ready:  # type: ignore[attr-defined]
                 await asyncio.sleep(POLL_S)  # a worker thread is busy: wait for it in real time

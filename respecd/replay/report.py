@@ -120,7 +120,7 @@ def image_pixels(frames: Iterable[Frame]) -> int:
 
 
 class Collector:
-    """A daemon tap gathering what the report needs (O(1) per call, on the loop)."""
+    """A session observer gathering what the report needs (O(1) per call, on the loop)."""
 
     def __init__(self, reference: Reference, native_rgb: tuple[int, int] | None) -> None:
         self.reference = reference
@@ -136,12 +136,9 @@ class Collector:
         self.timeline: list[dict[str, Any]] = []
         self.first_t: float | None = None
         self.last_t: float | None = None
-        self.drivers: dict[str, Any] = {}
+        self._ticked = False
         self._current: dict[str, SensorConfig] = {}
-
-    def attach(self, drivers: dict[str, Any]) -> None:
-        """Watch these drivers' applied configs (sampled at every synchronizer tick)."""
-        self.drivers = drivers
+        self._changed: dict[str, SensorConfig] = {}  # config messages since the last tick
 
     def on_frame(self, sensor_name: str, frame: Frame) -> None:
         self.frames[sensor_name] += 1
@@ -149,14 +146,20 @@ class Collector:
         self.last_t = frame.t if self.last_t is None else max(self.last_t, frame.t)
 
     def on_bundle(self, bundle: Bundle) -> None:
-        for name, driver in self.drivers.items():
-            if self._current.get(name) != driver.applied:
-                self._current[name] = driver.applied
-                self.configs.append((bundle.t, name, driver.applied))
+        """Configuration changes count from the tick that first runs under them."""
+        self._ticked = True
+        for name, applied in self._changed.items():
+            if self._current.get(name) != applied:
+                self._current[name] = applied
+                self.configs.append((bundle.t, name, applied))
+        self._changed.clear()
 
     def on_config(self, sensor_name: str, applied: SensorConfig) -> None:
-        self._current[sensor_name] = applied
-        self.configs.append((float("-inf"), sensor_name, applied))  # the start configuration
+        if not self._ticked:  # the start configuration
+            self._current[sensor_name] = applied
+            self.configs.append((float("-inf"), sensor_name, applied))
+        else:
+            self._changed[sensor_name] = applied
 
     def on_decision(self, decision: Decision) -> None:
         self.decisions.append(decision)

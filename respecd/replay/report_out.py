@@ -51,14 +51,16 @@ def merge(path: Path, log_id: dict[str, Any], policy: str, entry: dict[str, Any]
     return report
 
 
-def write(path: Path, report: dict[str, Any]) -> Path | None:
-    """Atomically write the JSON, then the PNG timeline next to it; returns the PNG path,
-    or None when matplotlib (the ``lab`` extra) is not installed: the JSON is the report."""
+def write(path: Path, report: dict[str, Any], figure: bool = True) -> Path | None:
+    """Atomically write the JSON, then (``figure``) the PNG timeline next to it; returns the
+    PNG path, or None without one (or without matplotlib, the ``lab`` extra: the JSON is the report)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=path.name, dir=path.parent)
     with os.fdopen(fd, "w", encoding="utf-8") as f:
         json.dump(report, f, indent=1)
     os.replace(tmp, path)
+    if not figure:
+        return None
     plt = _pyplot()
     if plt is None:
         log.info("replay.report.no_png", reason="matplotlib not installed (pip install respecd[lab])")

@@ -1,14 +1,20 @@
-"""``respecd --replay LOG``: run a recorded session through the same pipeline, with every
-sensor replaced by a counterfactual ``ReplayDriver``, and report how a policy did.
+"""``respecd --replay LOG`` and ``replay(...)``: run a recorded session through the same
+pipeline (a ``Session``), with every sensor replaced by a counterfactual ``ReplayDriver``,
+and report how a policy did.
 
 ``--speed max`` runs in lockstep on the log's clock (``LockstepLoop`` + ``LockstepClock``)
 and is deterministic: same log + profile + seed give the same decisions. Two things would
 otherwise leak this machine's timing into the controller, so lockstep replaces them:
 the CPU probe is off, and perception latency is modelled from the log (``LatencyModel``):
 the controller sees the modelled latency, and perception is kept busy for it on the log's
-clock (``pacing``), so it skips bundles as it did on the robot. The measured latency
-still goes into the report's compute figures.
-``--speed 1|2`` replays on a scaled wall clock with measured latencies, like a live run.
+clock, so it skips bundles as it did on the robot. The measured latency still goes into the
+report's compute figures. ``--speed 1|2`` replays on a scaled wall clock with measured
+latencies, like a live run.
+
+A replay learns in memory: it never writes a state directory. ``state_dir`` only says where
+to read a table from (never renamed, whatever is wrong with it); ``save_table`` is the one
+place a learned table is written. SIGTERM/SIGINT end a replay early, with the report of what
+was replayed so far.
 """
 
 from __future__ import annotations
@@ -16,7 +22,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import sys
-import tempfile
 import time
 from pathlib import Path
 from typing import Any
@@ -25,115 +30,145 @@ import structlog
 
 from respecd.errors import InputError
 from respecd.record.reader import SessionLog, open_log
-from respecd.replay import pacing, report_out
 from respecd.replay import report as rpt
+from respecd.replay import report_out
 from respecd.replay.latency import LatencyModel
 from respecd.replay.profile import first_frames, replay_profile
 
 log = structlog.get_logger(__name__)
 
 
-def run_replay(args: argparse.Namespace) -> int:
+def run_replay(args: argparse.Namespace, signals: Any = None) -> int:
     """Entry point from ``respecd --replay``; InputError/ConfigError become exit 2."""
-    if args.duration is not None and not args.duration > 0:
-        raise InputError(f"--duration: expected a positive number of seconds, got {args.duration}")
-    session = open_log(args.replay)
+    report = replay(args.replay, config=args.config, policy=args.policy, speed=str(getattr(args, "speed", "max")),
+                    seed=args.seed or 0, duration=args.duration, report=args.report, state_dir=args.state_dir,
+                    save_table=getattr(args, "save_table", None), signals=signals)
+    print(report_out.table(report))
+    return 0
+
+
+def replay(log_path: str | Path, *, config: str | Path | None = None, policy: str | None = None, speed: str = "max",
+           seed: int = 0, duration: float | None = None, report: str | Path | None = None,
+           state_dir: str | Path | None = None, save_table: str | Path | None = None,
+           signals: Any = None) -> dict[str, Any]:
+    """Replay ``log_path`` under ``policy``; the report (``{"log", "policies"}``), also merged
+    into the JSON at ``report`` (with a PNG timeline) when given. ``config``: a profile file
+    to replay with instead of the one recorded in the log. ``signals``: a ``StopSignals``
+    whose SIGTERM/SIGINT end the replay early (the report then covers what was replayed)."""
+    if duration is not None and not duration > 0:
+        raise InputError(f"--duration: expected a positive number of seconds, got {duration}")
+    session = open_log(log_path)
     if session.truncated:
         print(f"respecd: warning: {session.path} was cut short (no summary); replaying its "
               f"{session.duration_s:.2f} s up to the last complete chunk", file=sys.stderr)
         log.warning("replay.truncated", path=str(session.path), readable_s=round(session.duration_s, 3))
-    base = _base_profile(args, session)
+    base = _base_profile(config, session)
     firsts = first_frames(session)
     if not firsts:
         raise InputError(f"{session.path}: the log holds no sensor frames to replay")
-    speed = str(getattr(args, "speed", "max"))
-    profile = replay_profile(base, session, firsts, seed=(args.seed or 0), lockstep=speed == "max", policy=args.policy)
+    profile = replay_profile(base, session, firsts, seed=seed, lockstep=speed == "max", policy=policy)
     t0 = min(f.t for f in firsts.values())
-    duration = session.duration_s if args.duration is None else min(args.duration, session.duration_s)
-    entry = _run(profile, session, args, speed, t0, duration)
-    entry.update(policy=profile.controller.policy, seed=(args.seed or 0), speed=speed, truncated=session.truncated)
-    return _emit(args, session, entry)
+    span = session.duration_s if duration is None else min(duration, session.duration_s)
+    tables = _tables(profile, state_dir, save_table)
+    entry = _Replay(profile, session, speed, t0, span, seed, tables).run(signals)
+    entry.update(policy=profile.controller.policy, seed=seed, speed=speed, truncated=session.truncated)
+    return _emit(report, session, entry)
 
 
-def _base_profile(args: argparse.Namespace, session: SessionLog) -> dict[str, Any]:
-    """``--config`` when given explicitly, else the profile recorded in the log."""
+def _base_profile(config: str | Path | None, session: SessionLog) -> dict[str, Any]:
+    """``config`` when given explicitly, else the profile recorded in the log."""
     from respecd.config import DEFAULT_PROFILE, load_profile
 
-    if args.config and args.config != DEFAULT_PROFILE:
-        return load_profile(args.config).model_dump(mode="json")
+    if config and str(config) != DEFAULT_PROFILE:
+        return dict(load_profile(config).model_dump(mode="json"))
     recorded = session.profile_dict()
     if recorded is None:
         raise InputError(f"{session.path}: the log has no recorded profile; pass the one it ran with: --config FILE")
-    return recorded
+    return dict(recorded)
 
 
-def _run(profile: Any, session: SessionLog, args: argparse.Namespace, speed: str, t0: float, duration: float) -> dict:
-    from respecd.replay.lockstep import LockstepLoop
+def _tables(profile: Any, state_dir: str | Path | None, save_table: str | Path | None) -> Any:
+    """Read (never rename) the state directory's table when given; write only ``save_table``."""
+    from respecd.control.persist import table_path
+    from respecd.control.stage import TableFiles
 
-    state_dir = Path(args.state_dir) if args.state_dir else None
-    with tempfile.TemporaryDirectory(prefix="respecd-replay-") as scratch:
-        # a fresh Q-table per replay (unless --state-dir): two replays must not feed each other
-        runner = _Replay(profile, session, speed, t0, duration, state_dir or Path(scratch), (args.seed or 0))
-        if speed == "max":
-            with asyncio.Runner(loop_factory=LockstepLoop) as r:
-                return r.run(runner.run())
-        return asyncio.run(runner.run())
+    load = table_path(Path(state_dir), profile.controller.table_file, profile.name) if state_dir else None
+    if save_table is not None and profile.controller.policy != "learn":
+        log.warning("replay.save_table_ignored", policy=profile.controller.policy, reason="only learn updates a table")
+    return TableFiles(load, Path(save_table) if save_table is not None else None, set_aside=False)
 
 
 class _Replay:
-    """One replay run: builds the daemon around replay drivers and drives its clock."""
+    """One replay run: a session around replay drivers, its clock driven to the end."""
 
-    def __init__(self, profile: Any, session: SessionLog, speed: str, t0: float, duration: float,
-                 state_dir: Path, seed: int) -> None:
+    def __init__(self, profile: Any, session: SessionLog, speed: str, t0: float, duration: float, seed: int,
+                 tables: Any) -> None:
         self.profile = profile
         self.session = session
         self.speed = speed
         self.t0 = t0
         self.duration = duration
-        self.state_dir = state_dir
         self.seed = seed
+        self.tables = tables
         rgb = next((s for s in profile.sensors if s.modality == "rgb"), None)
         truth, self.logged_percepts = session.side_data(rgb.source or rgb.name if rgb else None)
         self.collector = rpt.Collector(
             rpt.build_reference(truth, self.logged_percepts),
             tuple(rgb.native_resolution) if rgb is not None and rgb.native_resolution else None,
         )
+        self.latency_source = "measured" if profile.perception.enabled else "none (perception off)"
 
-    async def run(self) -> dict[str, Any]:
+    def run(self, signals: Any) -> dict[str, Any]:
+        from respecd.replay.lockstep import LockstepLoop
+
+        if self.speed == "max":
+            with asyncio.Runner(loop_factory=LockstepLoop) as runner:
+                return runner.run(self._run(signals))
+        return asyncio.run(self._run(signals))
+
+    async def _run(self, signals: Any) -> dict[str, Any]:
         from respecd.clock import ScaledClock
-        from respecd.daemon import Daemon
         from respecd.drivers.base import DriverContext
         from respecd.replay.lockstep import LockstepClock
+        from respecd.session import Session
 
         lockstep = self.speed == "max"
+        stop = signals.bind() if signals is not None else asyncio.Event()
         clock: Any = LockstepClock(self.t0) if lockstep else ScaledClock(float(self.speed), start=self.t0)
-        context = DriverContext(seed=self.seed, replay=self.session)
-        daemon = Daemon(self.profile, clock, context, state_dir=self.state_dir, taps=[self.collector],
-                        status_sink=lambda fields, line: log.debug("status", line=line))
-        self.collector.attach(daemon.drivers)
-        self.latency_source = "measured" if self.profile.perception.enabled else "none (perception off)"
+        model = None
         if lockstep and self.profile.perception.enabled:
             model = LatencyModel.from_percepts(self.logged_percepts)
             self.latency_source = f"{model.source}: {model.s_per_pixel * 1e9:.1f} ns/px"
-            pacing.install(daemon, clock, model, self.collector.measured)
-        else:
-            daemon.percepts.taps.insert(0, self.collector.measured)
-        started, cpu0 = time.perf_counter(), time.process_time()
-        await self._drive(daemon, clock, lockstep)
+        session = Session(self.profile, clock, DriverContext(seed=self.seed, replay=self.session),
+                          tables=self.tables, observers=[self.collector], latency_model=model,
+                          status_sink=lambda fields, line: log.debug("status", line=line))
+        session.hooks.inference.append(self.collector.measured)
+        marks: list[tuple[float, float]] = []  # the replay loop alone: weight loading excluded
+        session.hooks.up.append(lambda: marks.append((time.perf_counter(), time.process_time())))
+        try:
+            await self._drive(session, clock, lockstep, stop)
+        finally:
+            if signals is not None:
+                signals.unbind()
+        started, cpu0 = marks[0] if marks else (time.perf_counter(), time.process_time())
         wall, cpu = time.perf_counter() - started, time.process_time() - cpu0
-        describe = getattr(daemon.controller, "describe_action", None)
+        end = min(max(clock.now(), self.t0), self.t0 + self.duration)
+        if stop.is_set():
+            log.info("replay.stopped", replayed_s=round(end - self.t0, 3), of_s=round(self.duration, 3))
+        describe = getattr(session.controller, "describe_action", None)
         power = {s.name: s.power for s in self.profile.sensors}
-        entry = rpt.summarize(self.collector, self.t0, self.t0 + self.duration, power, describe)
+        entry = rpt.summarize(self.collector, self.t0, end, power, describe)
         entry["wall_s"] = round(wall, 3)  # the replay loop alone: imports and weight loading excluded
         entry["cpu_s"] = round(cpu, 3)  # process CPU time (all threads) over the same span
         entry["latency_model"] = self.latency_source
+        entry["stopped_early"] = stop.is_set()
         return entry
 
-    async def _drive(self, daemon: Any, clock: Any, lockstep: bool) -> None:
+    async def _drive(self, session: Any, clock: Any, lockstep: bool, stop: asyncio.Event) -> None:
         end = self.t0 + self.duration
         bar = _progress_bar()(total=round(self.duration, 1), unit="s", desc="replay", disable=self.duration < 20,
                               mininterval=1.0, file=sys.stderr, leave=False)
-        task = asyncio.create_task(daemon.run(duration=self.duration), name="replay-daemon")
+        task = asyncio.create_task(session.run(duration=self.duration, stop=stop), name="replay-session")
 
         def progress(t: float) -> None:
             done = round(min(t, end) - self.t0, 1)
@@ -177,16 +212,15 @@ class _NoBar:
         pass
 
 
-def _emit(args: argparse.Namespace, session: SessionLog, entry: dict[str, Any]) -> int:
-    """Print the comparison table; write JSON + PNG when ``--report`` is given."""
+def _emit(report_path: str | Path | None, session: SessionLog, entry: dict[str, Any]) -> dict[str, Any]:
+    """The report of this policy, merged into and written as JSON + PNG at ``report_path``."""
     log_id = {"path": str(session.path.resolve()), "bytes": session.size, "start_ns": session.start_ns}
     policy = entry["policy"]
-    if args.report:
-        path = Path(args.report)
-        report = report_out.merge(path, log_id, policy, entry)
-        png = report_out.write(path, report)
-        log.info("replay.report", json=str(path), png=str(png) if png else None, policies=list(report["policies"]))
-    else:
-        report = {"log": log_id, "policies": {policy: entry}}
-    print(report_out.table(report))
-    return 0
+    if report_path is None:
+        return {"log": log_id, "policies": {policy: entry}}
+    path = Path(report_path)
+    report = report_out.merge(path, log_id, policy, entry)
+    # stopped by a signal: the JSON only, the timeline figure would take the stop past its 2 s
+    png = report_out.write(path, report, figure=not entry.get("stopped_early"))
+    log.info("replay.report", json=str(path), png=str(png) if png else None, policies=list(report["policies"]))
+    return report

@@ -48,16 +48,16 @@ async def _measure(profile: Any, seconds: float) -> dict[str, Any]:
     from pathlib import Path
 
     from respecd.clock import MonotonicClock
-    from respecd.daemon import Daemon
     from respecd.drivers.base import DriverContext
+    from respecd.session import Session
 
     clock = MonotonicClock()
     context = DriverContext(seed=0, simulation=getattr(profile, "simulation", None))
     with tempfile.TemporaryDirectory() as state_dir:
-        daemon = Daemon(profile, clock, context, state_dir=Path(state_dir))
+        daemon = Session(profile, clock, context, state_dir=Path(state_dir))
         jitter: list[float] = []
         lag: list[float] = []
-        daemon.synchronizer.on_tick = lambda scheduled, actual: jitter.append(actual - scheduled)
+        daemon.hooks.tick.append(lambda scheduled, actual: jitter.append(actual - scheduled))
         probe = asyncio.create_task(_lag_probe(lag), name="lag-probe")
         cpu0, wall0 = time.process_time(), time.perf_counter()
         try:

@@ -157,10 +157,10 @@ def _profile(args: argparse.Namespace, size: tuple[int, int], work: Path) -> tup
 
 def _record_simulated(profile: Any, path: Path, args: argparse.Namespace) -> Path:
     """A simulated session recorded in lockstep (as fast as the renderers go, no detector)."""
-    from respecd.daemon import Daemon
     from respecd.drivers.base import DriverContext
     from respecd.record.recorder import Recorder
     from respecd.replay.lockstep import LockstepClock, LockstepLoop
+    from respecd.session import Session
 
     quiet = profile.model_copy(update={"perception": profile.perception.model_copy(update={"enabled": False})})
     config = profile.recording.model_copy(update={"enabled": True, "path": str(path), "queue_size": 65536})
@@ -168,12 +168,11 @@ def _record_simulated(profile: Any, path: Path, args: argparse.Namespace) -> Pat
     async def session() -> None:
         clock = LockstepClock(0.0)
         recorder = Recorder(config, quiet, clock)
-        recorder.start()
         with tempfile.TemporaryDirectory() as state:
             context = DriverContext(seed=args.seed, simulation=getattr(quiet, "simulation", None))
-            daemon = Daemon(quiet, clock, context, state_dir=Path(state), taps=[recorder],
-                            status_sink=lambda fields, line: None)
-            task = asyncio.create_task(daemon.run(duration=args.seconds))
+            session = Session(quiet, clock, context, state_dir=Path(state), observers=[recorder],
+                              status_sink=lambda fields, line: None)
+            task = asyncio.create_task(session.run(duration=args.seconds))
             await clock.run(args.seconds)
             await task
 
@@ -187,16 +186,14 @@ def _replay(profile: Any, log: Path, work: Path, args: argparse.Namespace) -> di
 
     import yaml
 
-    from respecd.replay.run import run_replay
+    from respecd.replay.run import replay
 
     work.mkdir(parents=True, exist_ok=True)
     config = work / "replay-profile.yaml"
     config.write_text(yaml.safe_dump(profile.model_dump(mode="json")))
     report = work / "replay-report.json"
-    ns = argparse.Namespace(replay=str(log), speed="max", policy="static", report=str(report), seed=args.seed,
-                            duration=None, config=str(config), state_dir=None)
     start = time.perf_counter()
-    run_replay(ns)
+    replay(log, config=config, policy="static", speed="max", seed=args.seed, report=report)
     total = time.perf_counter() - start
     entry = json.loads(report.read_text())["policies"]["static"]
     return {

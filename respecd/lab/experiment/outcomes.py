@@ -152,9 +152,7 @@ def detect(detector: Any, frames: dict[str, Frame], previous: dict[str, Frame], 
     ``previous``: each imager's frame before the current one (the motion cue compares them).
     """
     if attribute:  # a fresh score per call: the decay between calls is the rollout's job
-        from respecd.perception.attribution import SceneScores
-
-        detector.scores = SceneScores(detector.channels, detector.config.attribution_decay_s)
+        detector.reset_scene_scores()
     percept = detector.infer(frames, attribute)
     boxes = np.array([d.box for d in percept.detections], dtype=np.float32).reshape(-1, 4)
     scores = np.array([d.confidence for d in percept.detections], dtype=np.float32)

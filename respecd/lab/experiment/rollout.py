@@ -1,17 +1,21 @@
-"""A controller driven through scenario segments, one decision window at a time.
+"""A controller driven through scenario segments by the daemon's own control loop.
 
-This is the daemon's control loop without asyncio or wall-clock waits, built from the same
-pieces: the profile's ``Controller`` (state bins, reward, Q-table, baselines, dwell time),
-the daemon's ``Window`` of per-percept samples, the detector's decaying scene score, and
-the simulated sensors' clamping. Per decision window (``decision_period_s``):
+The rollout runs ``respecd.control.loop.ControlLoop`` — the loop the daemon and a replay
+run — on a lockstep clock it controls, so a decision window costs no wall time. What differs
+from the daemon is only what feeds the loop: samples come from the detector's cached
+outcomes at a few scene instants per window instead of every percept, the system signal is
+the modelled detector load (``ModelledLoad``), and decisions go to ``SimulatedSensors``,
+which answer what the simulated drivers' ``apply`` would (they clamp). Per decision window
+(``decision_period_s``):
 
 1. ``samples_per_s`` scene instants at seeded random offsets inside the window (the same
    instants for every policy, so the comparison is paired); at each, the detector's
    outcome on the frames the current configuration delivers (cached, see ``outcomes.py``);
-   the first instant of the window is attributed, as the daemon attributes once per decision;
-2. the window's observation -> ``Controller.step`` -> the new configuration is applied; the
-   observation's detector busy share is the window's modelled compute (step 3), since the
-   window holds only the scored instants, not every inference;
+   the first instant after a decision is attributed, as the daemon's perception attributes
+   the first bundle after the loop asks (once per decision);
+2. at the window's end the loop decides and applies; the observation's detector busy share
+   is the window's modelled compute (step 3), since the window holds only the scored
+   instants, not every inference;
 3. the window's figures under the configuration that was active during it: detections vs
    ground truth at the instant (a stale frame scores worse on a moving target), compute
    (measured forward time x inference rate + attribution once per window), energy from the
@@ -27,23 +31,28 @@ The host's CPU is not probed (``system_probe`` off, as for deterministic replay)
 
 from __future__ import annotations
 
+import asyncio
 import zlib
-from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field, replace
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
+from respecd.applied import AppliedConfigs
 from respecd.control.actions import Position
 from respecd.control.controller import Controller
-from respecd.control.features import Sample, Window
+from respecd.control.features import Sample
+from respecd.control.loop import ControlLoop
+from respecd.control.probe import SystemSample
 from respecd.lab.detector.metrics import ImageResult
 from respecd.lab.experiment.frames import frame_bytes
 from respecd.lab.experiment.latency import Latency
 from respecd.lab.experiment.outcomes import Evaluator
 from respecd.messages import Decision, SensorConfig
 from respecd.perception.attribution import SceneScores
-from respecd.sensors import clamp_request
+from respecd.replay.lockstep import LockstepClock, LockstepLoop
+from respecd.sensors import Capabilities, clamp_request
 from respecd.sim.world import World
 
 
@@ -75,12 +84,38 @@ class WindowRecord:
 class _PieceRun:
     """One piece inside a rollout: its world, time offset, sample instants and shared state."""
 
-    def __init__(self, piece: Piece, world: Any, offset: float, static: bool, window: Window,
+    def __init__(self, piece: Piece, world: Any, offset: float, static: bool, loop: ControlLoop,
                  scores: SceneScores) -> None:
         self.world, self.offset, self.static = world, offset, static
-        self.window, self.scores = window, scores
+        self.loop, self.scores = loop, scores
         # the same instants for every policy: seeded by the piece, not by the run
         self.rng = np.random.default_rng([piece.seed, zlib.crc32(piece.scenario.encode()), 5])
+
+
+class SimulatedSensors:
+    """The loop's ``Sensors`` for a trainer: what the simulated drivers' ``apply`` answers
+    (a request clamped into their capabilities), without running them."""
+
+    def __init__(self, capabilities: Mapping[str, Capabilities]) -> None:
+        self.capabilities = capabilities
+
+    async def apply(self, requests: Mapping[str, SensorConfig]) -> dict[str, SensorConfig | None]:
+        return {name: clamp_request(self.capabilities[name], request) if name in self.capabilities else request
+                for name, request in requests.items()}
+
+
+class ModelledLoad:
+    """The loop's ``LoadProbe`` for a trainer: the detector's busy share of a window at the
+    running configuration, from its measured latency (what the Jetson's GPU probe reads,
+    capped at one accelerator); the host's own CPU is not probed."""
+
+    def __init__(self, rollout: Rollout, applied: Mapping[str, SensorConfig]) -> None:
+        self.rollout = rollout
+        self.applied = applied
+
+    async def read(self) -> SystemSample:
+        busy = self.rollout.compute_s(dict(self.applied)) / self.rollout.period
+        return SystemSample(None, min(busy, 1.0), None, busy)
 
 
 def controller_for(profile: Any, policy: str) -> Controller:
@@ -115,47 +150,42 @@ class Rollout:
         return {s.name: clamp_request(self.caps[s.name], s.initial_request()) if s.name in self.caps
                 else s.initial_request() for s in self.sensors}
 
+    def starting(self, controller: Controller) -> dict[str, SensorConfig]:
+        """The simulated sensors start at the action space's position nearest the profile's
+        settings (a daemon gets there at its first decision): the latency table knows only
+        the resolutions the controller can choose."""
+        applied = self.initial()
+        requests = controller.space.requests(controller.space.nearest(applied))
+        for slot, request in zip(controller.space.slots, requests, strict=True):
+            result = clamp_request(self.caps[slot.name], request) if slot.name in self.caps else request
+            if result != applied.get(slot.name):
+                applied[slot.name] = result
+        return applied
+
     def run(self, controller: Controller, pieces: Iterable[Piece],
             on_window: Callable[[WindowRecord], None] | None = None) -> list[WindowRecord]:
-        cfg = controller.config
-        window = Window(cfg.window_s, cfg.latency_budget_s)
-        det = self.evaluator.detector
-        scores = SceneScores(det.channels, det.config.attribution_decay_s)
-        applied = self.initial()
-        controller.position = controller.space.nearest(applied)
-        # the sensors start at that position (the daemon gets there at its first decision)
-        applied = self._configure(applied, controller, controller.space.requests(controller.position))
-        records: list[WindowRecord] = []
-        offset = 0.0
-        for piece in pieces:
-            run = _PieceRun(piece, self.world(piece), offset, self.evaluator.static(piece), window, scores)
-            steps = max(1, int(round(piece.duration_s / self.period)))
-            for k in range(steps):
-                images, points = self._observe(run, k, self._by_modality(applied))
-                now = offset + (k + 1) * self.period
-                position = controller.position
-                # the window holds only the scored instants: the detector's busy share comes from its
-                # real rate, and is the load a GPU probe would read (capped at one accelerator)
-                busy = self.compute_s(applied) / self.period
-                obs = replace(window.observe(now, gpu=min(busy, 1.0)), busy=busy)
-                decision = controller.step(obs, applied)
-                records.append(self._record(piece.scenario, now, position, decision, applied, images, points))
-                applied = self._configure(applied, controller, decision.configs)
-                if on_window is not None:
-                    on_window(records[-1])
-            offset += steps * self.period
-        return records
+        """Every piece in sequence under ``controller``; one record per decision window."""
+        with asyncio.Runner(loop_factory=LockstepLoop) as runner:
+            return runner.run(self._run(controller, list(pieces), on_window))
 
-    def _observe(self, run: _PieceRun, k: int, configs: dict[str, SensorConfig]) -> tuple[list[ImageResult], float]:
-        """The samples of window ``k`` into the controller's window; images and mean radar points."""
-        offsets = (np.arange(self.samples) + run.rng.uniform(0.02, 0.98, self.samples)) / self.samples
-        images, points = [], []
-        for j, u in enumerate(offsets):
-            slot = k * self.samples + j if run.static else None
-            image, n_points = self._sample(run, configs, (k + u) * self.period, j == 0, slot)
-            images.append(image)
-            points.append(n_points or 0.0)
-        return images, float(np.mean(points))
+    async def _run(self, controller: Controller, pieces: list[Piece],
+                   on_window: Callable[[WindowRecord], None] | None) -> list[WindowRecord]:
+        clock = LockstepClock(0.0)
+        applied = AppliedConfigs(self.starting(controller))
+        loop = ControlLoop(controller, clock, SimulatedSensors(self.caps), applied, ModelledLoad(self, applied))
+        feeder = _Feeder(self, loop, on_window)
+        tasks = [asyncio.create_task(loop.run(), name="control-loop"),
+                 asyncio.create_task(feeder.run(pieces), name="rollout-samples")]
+        try:
+            await clock.run(feeder.total_s(pieces))
+            for task in tasks:
+                if task.done():
+                    task.result()  # a crash in either is the rollout's error
+        finally:
+            for task in tasks:
+                task.cancel()
+            await asyncio.gather(*tasks, return_exceptions=True)
+        return feeder.records
 
     def _by_modality(self, applied: dict[str, SensorConfig]) -> dict[str, SensorConfig]:
         out: dict[str, SensorConfig] = {}
@@ -170,9 +200,9 @@ class Rollout:
         contributions = run.scores.update(offset + t, out.contributions) if attribute else None
         res = configs["rgb"].resolution
         imu = self.evaluator.imu(world, t)
-        run.window.add(Sample(offset + t, out.conf_agg, self.mean_latency_s(configs),
-                          out.luminance, out.motion, float(np.linalg.norm(imu[3:6])), out.radar_points, 0,
-                          contributions))
+        run.loop.add(Sample(offset + t, out.conf_agg, self.mean_latency_s(configs),
+                            out.luminance, out.motion, float(np.linalg.norm(imu[3:6])), out.radar_points, 0,
+                            contributions))
         boxes, ignore = self.evaluator.truth(world, t, res)
         return ImageResult(out.boxes, out.scores, boxes, ignore), out.radar_points
 
@@ -205,12 +235,68 @@ class Rollout:
         inferences = max(self.detector_rate(by_modality) * self.period, 1.0)
         return lat.forward_s * inferences + (lat.attribution_s - lat.forward_s), inferences
 
-    def _configure(self, applied: dict[str, SensorConfig], controller: Controller,
-                   requests: tuple[SensorConfig, ...]) -> dict[str, SensorConfig]:
-        """What the simulated drivers answer to the requests (they clamp, like their apply())."""
-        out = dict(applied)
-        for slot, request in zip(controller.space.slots, requests, strict=True):
-            result = clamp_request(self.caps[slot.name], request) if slot.name in self.caps else request
-            if result != applied.get(slot.name):
-                out[slot.name] = result
-        return out
+
+class _Feeder:
+    """The rollout's percept source on the loop's clock: a window's samples at their
+    instants, and its record once the loop has decided at the window's end."""
+
+    def __init__(self, rollout: Rollout, loop: ControlLoop, on_window: Callable[[WindowRecord], None] | None) -> None:
+        self.rollout = rollout
+        self.loop = loop
+        self.on_window = on_window
+        self.records: list[WindowRecord] = []
+        det = rollout.evaluator.detector
+        self.scores = SceneScores(det.channels, det.config.attribution_decay_s)
+        self._attribute = True  # the first window's first instant, as perception's first bundle
+        self._window: tuple[str, Position, dict[str, SensorConfig], list[ImageResult], float] | None = None
+        loop.on_window.append(self._attribute_next)
+        loop.on_decision.append(self._decided)
+
+    def total_s(self, pieces: list[Piece]) -> float:
+        return sum(self.steps(p) for p in pieces) * self.rollout.period
+
+    def steps(self, piece: Piece) -> int:
+        return max(1, int(round(piece.duration_s / self.rollout.period)))
+
+    async def run(self, pieces: list[Piece]) -> None:
+        rollout, clock, period = self.rollout, self.loop.clock, self.rollout.period
+        offset = 0.0
+        for piece in pieces:
+            run = _PieceRun(piece, rollout.world(piece), offset, rollout.evaluator.static(piece), self.loop,
+                            self.scores)
+            for k in range(self.steps(piece)):
+                await clock.sleep_until(offset + k * period)  # after the loop's decision at this instant
+                applied = dict(self.loop.applied)  # what runs during this window
+                position = self.loop.controller.position
+                images, points = await self._observe(run, k, applied, clock)
+                self._window = (piece.scenario, position, applied, images, points)
+            offset += self.steps(piece) * period
+
+    async def _observe(self, run: _PieceRun, k: int, applied: dict[str, SensorConfig],
+                       clock: LockstepClock) -> tuple[list[ImageResult], float]:
+        """The samples of window ``k`` at their instants; its images and mean radar points."""
+        rollout = self.rollout
+        samples, period = rollout.samples, rollout.period
+        configs = rollout._by_modality(applied)
+        offsets = (np.arange(samples) + run.rng.uniform(0.02, 0.98, samples)) / samples
+        images, points = [], []
+        for j, u in enumerate(offsets):
+            t = (k + u) * period
+            await clock.sleep_until(run.offset + t)
+            slot = k * samples + j if run.static else None
+            attribute, self._attribute = self._attribute, False
+            image, n_points = rollout._sample(run, configs, t, attribute, slot)
+            images.append(image)
+            points.append(n_points or 0.0)
+        return images, float(np.mean(points))
+
+    def _attribute_next(self) -> None:
+        self._attribute = True
+
+    def _decided(self, decision: Decision) -> None:
+        assert self._window is not None, "a decision before any sample"
+        scenario, position, applied, images, points = self._window
+        record = self.rollout._record(scenario, decision.t, position, decision, applied, images, points)
+        self.records.append(record)
+        if self.on_window is not None:
+            self.on_window(record)
