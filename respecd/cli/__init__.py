@@ -12,6 +12,7 @@ import importlib
 import os
 import sys
 
+from respecd import __version__
 from respecd.errors import ConfigError, InputError
 
 # subcommand -> (module, one-line help)
@@ -33,6 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     from respecd.cli.run import add_arguments as add_run_arguments
 
     parser = argparse.ArgumentParser(prog="respecd", description="Adaptive multispectral sensing daemon (ReSPEC).", allow_abbrev=False)  # noqa: E501 (`bench scenarios --log` is not an abbreviation of --log-level)
+    parser.add_argument("--version", action="version", version=f"respecd {__version__}")
     add_run_arguments(parser)
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module_name, help_text) in COMMANDS.items():
