@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from respecd.messages import Modality, RadarMode, Resolution, SensorConfig
@@ -41,6 +42,19 @@ class Extrinsics(StrictModel):
         (0.0, 0.0, 0.0),
         description="Position of this sensor in the RGB camera frame (metres, x right, y down, z forward).",
     )
+
+
+def rotation_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
+    """Rotation matrix from roll (about z, the optical axis), pitch (x) and yaw (y), degrees.
+
+    Camera convention x right, y down, z forward: yaw turns left/right, pitch up/down. It
+    maps a sensor's points into the RGB camera frame: ``p_rgb = R p_sensor + t``.
+    """
+    r, p, y = (math.radians(a) for a in (roll, pitch, yaw))
+    rz = np.array([[math.cos(r), -math.sin(r), 0], [math.sin(r), math.cos(r), 0], [0, 0, 1]])
+    rx = np.array([[1, 0, 0], [0, math.cos(p), -math.sin(p)], [0, math.sin(p), math.cos(p)]])
+    ry = np.array([[math.cos(y), 0, math.sin(y)], [0, 1, 0], [-math.sin(y), 0, math.cos(y)]])
+    return ry @ rx @ rz
 
 
 class Calibration(StrictModel):

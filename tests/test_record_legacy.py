@@ -33,7 +33,7 @@ def test_first_format_frames_decode_with_their_times_and_ground_truth() -> None:
     log = open_log(LEGACY)
     rgb = list(log.frames("rgb"))
     assert len(rgb) == 10 and rgb[0].data.shape == (360, 640, 3) and "gt" in rgb[0].meta
-    assert all(b.t > a.t for a, b in zip(rgb, rgb[1:]))
+    assert all(b.t > a.t for a, b in zip(rgb, rgb[1:], strict=False))
     thermal = next(iter(log.frames("thermal")))
     assert thermal.data.dtype == np.uint16 and thermal.data.min() > 20000  # centikelvin
     radar = next(iter(log.frames("radar")))

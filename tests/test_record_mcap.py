@@ -22,7 +22,9 @@ from respecd.record.config import RecordingConfig
 from respecd.record.reader import open_log
 from respecd.record.recorder import Recorder
 
-PROFILE = {"name": "test-rig", "sensors": [{"name": "cam", "modality": "rgb"}]}
+INTRINSICS = {"fx": 457.0, "fy": 457.0, "cx": 320.0, "cy": 180.0, "width": 640, "height": 360}
+PROFILE = {"name": "test-rig",
+           "sensors": [{"name": "cam", "modality": "rgb", "calibration": {"intrinsics": INTRINSICS}}]}
 
 
 def _validate(value: Any, schema: dict[str, Any], path: str = "$") -> None:
@@ -104,34 +106,58 @@ async def test_log_opens_with_mcap_reader_and_decodes_with_foxglove_schemas(tmp_
         metadata = {m.name: m.metadata for m in reader.iter_metadata()}
         assert json.loads(metadata["respecd.profile"]["json"])["name"] == "test-rig"
         seen: dict[str, int] = {}
-        image_stamps: dict[int, dict] = {}
-        overlays = []
+        image_stamps: dict[int, Any] = {}
+        overlays, metas = [], {}
         for schema, channel, message in reader.iter_messages():
-            assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
-            body = json.loads(message.data)
-            _validate(body, json.loads(schema.data))
             seen[schema.name] = seen.get(schema.name, 0) + 1
+            if schema.name.startswith("foxglove."):
+                body = _decode_foxglove(schema, channel, message.data)
+            else:
+                assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
+                body = json.loads(message.data)
+                _validate(body, json.loads(schema.data))
+            if channel.topic.endswith("/meta"):
+                metas[channel.topic.removesuffix("/meta"), message.log_time] = body
             if channel.topic == "/respecd/detections":
                 overlays.append(body)
                 assert channel.metadata == {"image_topic": "/sensors/cam"}
             if channel.topic == "/sensors/cam":
-                image_stamps[body["respecd"]["seq"]] = body["timestamp"]
-                image = cv2.imdecode(np.frombuffer(base64.b64decode(body["data"]), np.uint8), cv2.IMREAD_COLOR)
-                assert body["format"] == "jpeg" and image.shape == (360, 640, 3)
+                image_stamps[metas["/sensors/cam", message.log_time]["seq"]] = _stamp(body.timestamp)
+                image = cv2.imdecode(np.frombuffer(body.data, np.uint8), cv2.IMREAD_COLOR)
+                assert body.format == "jpeg" and image.shape == (360, 640, 3) and body.frame_id == "cam"
             if channel.topic == "/sensors/radar":
-                stride = body["point_stride"]
-                assert [f["name"] for f in body["fields"]] == ["x", "y", "z", "v", "snr"] and stride == 20
-                points = np.frombuffer(base64.b64decode(body["data"]), "<f4").reshape(-1, 5)
-                seq = body["respecd"]["seq"]
+                assert [f.name for f in body.fields] == ["x", "y", "z", "v", "snr"] and body.point_stride == 20
+                points = np.frombuffer(body.data, "<f4").reshape(-1, 5)
+                seq = metas["/sensors/radar", message.log_time]["seq"]
                 np.testing.assert_array_equal(points, sent[seq]["radar"].data)
-    assert seen["foxglove.CompressedImage"] == 45  # rgb jpeg
+    assert seen["foxglove.CompressedImage"] == 2 * 45  # rgb jpeg + the thermal display image
     assert seen["foxglove.RawImage"] == 2 * 45  # thermal mono16, depth 16UC1 (the default: exact, cheap)
     assert seen["foxglove.PointCloud"] == 45 and seen["respecd.RawBytes"] == 45
+    assert seen["respecd.FrameMeta"] == 5 * 45
     assert seen["respecd.Decision"] == 3 and seen["respecd.SensorConfig"] == 3
+    assert seen["foxglove.FrameTransforms"] >= 2 and seen["foxglove.CameraCalibration"] >= 1
     assert len(overlays) == 3  # detections drawn over the very RGB frame they came from
-    assert overlays[1]["points"][0]["timestamp"] == image_stamps[15]
-    assert [(p["x"], p["y"]) for p in overlays[1]["points"][0]["points"]][2] == (30.0, 40.0)
-    assert overlays[1]["labels"][0]["text"] == "person 0.80"
+    assert _stamp(overlays[1].points[0].timestamp) == image_stamps[15] == _stamp(overlays[1].timestamp)
+    assert [(p.x, p.y) for p in overlays[1].points[0].points][2] == (30.0, 40.0)
+    assert [t.text for t in overlays[1].texts] == ["person 0.80"]
+
+
+def _stamp(ts: Any) -> tuple[int, int]:
+    return ts.seconds, ts.nanos
+
+
+def _decode_foxglove(schema: Any, channel: Any, data: bytes) -> Any:
+    """Decode with the schema foxglove-sdk publishes (byte-identical to the file's); every
+    byte must belong to a field of that schema (re-encoding gives the same bytes)."""
+    import foxglove.messages as fox
+    from mcap_protobuf.decoder import DecoderFactory
+
+    official = getattr(fox, schema.name.removeprefix("foxglove.")).get_schema()
+    assert (schema.encoding, channel.message_encoding) == ("protobuf", "protobuf")
+    assert schema.data == bytes(official.data)
+    message = DecoderFactory().decoder_for("protobuf", schema)(data)
+    assert message.SerializeToString() == data
+    return message
 
 
 async def test_frames_come_back_exact_where_lossless(tmp_path: Path) -> None:
@@ -189,8 +215,8 @@ async def test_queue_drops_oldest_and_counts(tmp_path: Path) -> None:
         recorder.on_frame("cam", Frame("rgb", i / 30, i, noise))
     await recorder.close()
     assert recorder.dropped > 0
-    assert recorder.written + recorder.dropped == 300
     frames = list(open_log(recorder.paths[0]).frames("cam"))
+    assert len(frames) + recorder.dropped == 300
     assert frames[-1].seq == 299  # the newest survive
 
 
@@ -223,6 +249,6 @@ async def test_close_gives_up_queued_frames_to_finish_in_time(tmp_path: Path) ->
     recorder.on_decision(Decision(14.0, (0,), 1, 0.0, 0.0, (0.0,)))
     await recorder.close()
     assert recorder.dropped > 0  # no queue overflow here: only the drain window drops
-    assert recorder.written + recorder.dropped == 401
     log = open_log(recorder.paths[0])
+    assert len(list(log.frames("cam"))) + 1 + recorder.dropped == 401
     assert not log.truncated and log.channels["/respecd/decision"].count == 1  # cheap messages always kept

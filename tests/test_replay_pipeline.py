@@ -14,6 +14,7 @@ import pytest
 import structlog
 import yaml
 from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
 
 from respecd.cli import main
 
@@ -53,16 +54,22 @@ def test_recorded_session_opens_with_the_mcap_reader(session_log: Path) -> None:
     schemas: dict[str, set[str]] = {}
     with open(session_log, "rb") as f:
         reader = make_reader(f)
+        decoders = DecoderFactory()
         for schema, channel, message in reader.iter_messages():
             schemas.setdefault(channel.topic, set()).add(schema.name)
-            body = json.loads(message.data)
-            if schema.name.startswith("foxglove."):
-                assert set(json.loads(schema.data)["properties"]) >= set(body) - {"respecd"}
+            if schema.name.startswith("foxglove."):  # Foxglove's own protobuf types, every byte a field
+                decoded = decoders.decoder_for(channel.message_encoding, schema)(message.data)
+                assert channel.message_encoding == "protobuf" and decoded.SerializeToString() == message.data
+            else:
+                assert channel.message_encoding == "json" and isinstance(json.loads(message.data), dict)
         profile = {m.name: m.metadata for m in reader.iter_metadata()}["respecd.profile"]
     assert json.loads(profile["json"])["name"] == "sim-rover-test"
     assert schemas["/sensors/rgb"] == {"foxglove.CompressedImage"}
     assert schemas["/sensors/thermal"] == {"foxglove.RawImage"}
     assert schemas["/sensors/radar"] == {"foxglove.PointCloud"}
+    assert schemas["/sensors/thermal/colormap"] == {"foxglove.CompressedImage"}
+    assert schemas["/tf"] == {"foxglove.FrameTransforms"}
+    assert schemas["/sensors/rgb/calibration"] == {"foxglove.CameraCalibration"}
     assert {"/respecd/decision", "/respecd/sync", "/respecd/config"} <= set(schemas)
 
 

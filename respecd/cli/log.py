@@ -74,6 +74,7 @@ def describe(session: Any) -> dict[str, Any]:
         "profile": profile.get("name") if profile else None,
         "segment": meta.get("segment"),
         "respecd_version": meta.get("respecd_version"),
+        "format": int(meta.get("format", "1")),  # 1: respecd 0.1.0's JSON/base64 messages
         "ground_truth": _has_ground_truth(session),
     }
 
@@ -103,7 +104,7 @@ def render(d: dict[str, Any]) -> str:
     cut = "  TRUNCATED: no summary; readable up to the last complete chunk" if d["truncated"] else ""
     lines = [
         f"file:      {d['file']} ({d['bytes'] / 2**20:.1f} MiB){cut}",
-        f"profile:   {d['profile'] or '(not recorded)'}   respecd {d['respecd_version'] or '?'}"
+        f"profile:   {d['profile'] or '(not recorded)'}   respecd {d['respecd_version'] or '?'}   format {d['format']}"
         + (f"   segment {d['segment']}" if d["segment"] not in (None, "0") else ""),
         f"start:     {d['start_utc'] or '-'}",
         f"duration:  {d['duration_s']:.2f} s",

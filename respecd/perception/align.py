@@ -24,7 +24,7 @@ import numpy as np
 from respecd.messages import Frame
 from respecd.perception.boxes import pad_to_stride
 from respecd.perception.config import PerceptionConfig
-from respecd.sensors import Calibration, Intrinsics
+from respecd.sensors import Calibration, Intrinsics, rotation_rpy  # noqa: F401 - rotation_rpy re-exported
 
 DEFAULT_RGB_HFOV_DEG = 70.0  # used only when the RGB camera has no calibrated intrinsics
 RADAR_SNR_FULL_DB = 30.0  # SNR mapped to full splat intensity
@@ -37,18 +37,6 @@ class AlignedInput:
     tensor: np.ndarray  # float32 (C, Hp, Wp) in 0..1, C = 3 + aux, padded to multiples of 32
     presence: np.ndarray  # float32 (aux,) 1 = the modality delivered a frame
     size: tuple[int, int]  # RGB (width, height) before padding: detections live in this frame
-
-
-def rotation_rpy(roll: float, pitch: float, yaw: float) -> np.ndarray:
-    """Rotation matrix from roll (about z, the optical axis), pitch (x) and yaw (y), degrees.
-
-    Camera convention x right, y down, z forward: yaw turns left/right, pitch up/down.
-    """
-    r, p, y = (math.radians(a) for a in (roll, pitch, yaw))
-    rz = np.array([[math.cos(r), -math.sin(r), 0], [math.sin(r), math.cos(r), 0], [0, 0, 1]])
-    rx = np.array([[1, 0, 0], [0, math.cos(p), -math.sin(p)], [0, math.sin(p), math.cos(p)]])
-    ry = np.array([[math.cos(y), 0, math.sin(y)], [0, 1, 0], [-math.sin(y), 0, math.cos(y)]])
-    return ry @ rx @ rz
 
 
 def camera_matrix(intr: Intrinsics, width: int, height: int) -> np.ndarray:

@@ -1,40 +1,72 @@
-"""Turn pipeline messages into JSON channel payloads and logged frames back into ``Frame``s.
+"""Pipeline frames to Foxglove messages (protobuf, binary payloads) and back.
 
 Runs in the recorder's writer thread (encode) and in replay (decode), never on the event
-loop: JPEG/PNG coding is the costly part. Encoding is exact for 16-bit and float images
-(RawImage or PNG) and for radar points (float32 in a PointCloud); RGB is JPEG by default,
-so a replayed RGB frame differs from the live one by JPEG loss only.
+loop: JPEG/PNG coding is the costly part. The messages are ``foxglove-sdk``'s own types,
+so they validate against Foxglove's schemas by construction. What a Foxglove message has no
+field for (the exact session time, sequence number, driver meta such as ground truth) goes
+into a ``respecd.FrameMeta`` JSON message on ``/sensors/<name>/meta``, written just before
+the frame with the same log time. Encoding is exact for 16-bit and float images (RawImage
+or PNG) and radar points (float32 PointCloud); RGB is JPEG by default.
 """
 
 from __future__ import annotations
 
-import base64
 import json
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import cache
+from typing import Any, NamedTuple
 
 import cv2
+import foxglove.messages as fox
 import numpy as np
 
-from respecd.messages import Bundle, Decision, Frame, Modality, Percept, SensorConfig
-from respecd.record.schemas import NUMERIC_FLOAT32
+from respecd.messages import Frame, Modality
+from respecd.record import legacy
+from respecd.record.topics import colormap_topic, meta_topic, raw_topic, sensor_topic
 
-RADAR_FIELDS = ("x", "y", "z", "v", "snr")  # Frame.data columns for radar, float32 each
+RADAR_FIELDS = legacy.RADAR_FIELDS
 RADAR_STRIDE = 4 * len(RADAR_FIELDS)
-_IDENTITY_POSE = {"position": {"x": 0.0, "y": 0.0, "z": 0.0}, "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}}
+_RAW_ENCODINGS = {  # Foxglove RawImage encodings; data is little-endian
+    ("uint8", 3): "bgr8",
+    ("uint8", 1): "mono8",
+    ("uint16", 1): "mono16",
+    ("float32", 1): "32FC1",
+}
 
 
 @dataclass(frozen=True)
 class ImageFormats:
-    """The recording choices that matter to the encoder (a slice of RecordingConfig)."""
+    """The recording choices that matter to the encoder (a slice of RecordingConfig + profile)."""
 
     rgb: str = "jpeg"
     jpeg_quality: int = 90
-    wide: str = "png"  # 16-bit thermal/depth: "png" or "raw"
+    wide: str = "raw"  # 16-bit thermal/depth: "png" or "raw"
+    thermal_colormap: str = "inferno"  # or "none": no display image beside the raw thermal one
+    thermal_range_k: tuple[float, float] = (273.0, 313.0)  # kelvin spread over the colormap
+    thermal_counts_per_k: float = 100.0  # raw uint16 counts per kelvin (centikelvin)
 
 
-def stamp(log_ns: int) -> dict[str, int]:
-    return {"sec": log_ns // 1_000_000_000, "nsec": log_ns % 1_000_000_000}
+class Message(NamedTuple):
+    """One message for a sink: topic, schema name, payload, channel metadata."""
+
+    topic: str
+    schema: str
+    payload: bytes
+    channel_meta: dict[str, str]
+
+
+@dataclass(frozen=True)
+class LoggedSchema:
+    """A channel's schema as the log stores it (reader side)."""
+
+    name: str
+    message_encoding: str = "json"
+    data: bytes = field(default=b"", repr=False)
+
+
+def timestamp(log_ns: int) -> fox.Timestamp:
+    return fox.Timestamp(log_ns // 1_000_000_000, log_ns % 1_000_000_000)
 
 
 def dumps(obj: Any) -> bytes:
@@ -46,246 +78,154 @@ def _json_default(value: Any) -> Any:
         return value.tolist()
     if isinstance(value, np.generic):
         return value.item()
-    if isinstance(value, (bytes, bytearray)):
-        return base64.b64encode(value).decode()
     if hasattr(value, "value"):  # enums
         return value.value
     return str(value)
 
 
-def with_data(fields: dict[str, Any], data: bytes | np.ndarray, extra: dict[str, Any] | None) -> bytes:
-    """``fields`` + ``"data"`` (base64) + ``"respecd"``, as one JSON object, in that order.
-
-    The base64 text is spliced in as bytes: it needs no escaping, and letting ``json`` scan
-    a megabyte string costs more than the rest of the encoding (about 2 ms per depth frame).
-    """
-    raw = data if isinstance(data, bytes) else np.ascontiguousarray(data).tobytes()
-    head = dumps(fields)[:-1] + (b',"data":"' if fields else b'"data":"')
-    tail = b'"}' if extra is None else b'","respecd":' + dumps(extra) + b"}"
-    return head + base64.b64encode(raw) + tail
-
-
-def b64decode(text: str) -> bytes:
-    return base64.b64decode(text)
-
-
-def frame_extra(payload: bytes) -> dict[str, Any]:
-    """The ``respecd`` object of a sensor message (time, seq, meta) without parsing the image.
-
-    It follows the base64 ``data`` string, which cannot contain a quote, so it is found by
-    searching past that string; anything unexpected falls back to a full parse.
-    """
-    start = payload.find(b'"data":"')
-    end = payload.find(b'"', start + 8) if start >= 0 else -1
-    key = payload.find(b'"respecd":', end) if end >= 0 else -1
-    if key >= 0 and payload.endswith(b"}"):
-        try:
-            return json.loads(payload[key + 10 : -1])
-        except ValueError:
-            pass
-    return json.loads(payload).get("respecd") or {}
-
-
-def _respecd_extra(frame: Frame) -> dict[str, Any]:
+# -- encode -------------------------------------------------------------------------------
+def encode_frame(frame: Frame, sensor: str, log_ns: int, formats: ImageFormats) -> list[Message]:
+    """The messages one sensor frame becomes: its FrameMeta, then the frame (and, for a
+    thermal camera, its colormapped display image)."""
+    base = {"sensor": sensor, "modality": frame.modality}
     meta = {k: v for k, v in frame.meta.items() if k != "raw"}  # raw bytes have their own channel
-    return {"t": frame.t, "seq": frame.seq, "modality": frame.modality, "meta": meta}
-
-
-def encode_frame(frame: Frame, sensor: str, log_ns: int, formats: ImageFormats) -> tuple[str, bytes]:
-    """(schema name, JSON payload) for one sensor frame."""
-    head = {"timestamp": stamp(log_ns), "frame_id": sensor}
-    data = frame.data
+    out = [Message(meta_topic(sensor), "respecd.FrameMeta",
+                   dumps({"t": frame.t, "seq": frame.seq, "modality": frame.modality, "meta": meta}), base)]
+    ts = timestamp(log_ns)
     if frame.modality == "radar":
-        points = np.ascontiguousarray(data, dtype="<f4").reshape(-1, len(RADAR_FIELDS))
-        body = {
-            "pose": _IDENTITY_POSE,
-            "point_stride": RADAR_STRIDE,
-            "fields": [{"name": n, "offset": 4 * i, "type": NUMERIC_FLOAT32} for i, n in enumerate(RADAR_FIELDS)],
-        }
-        return "foxglove.PointCloud", with_data({**head, **body}, points.tobytes(), _respecd_extra(frame))
-    if frame.modality == "imu":
-        a = [float(x) for x in np.asarray(data, dtype=np.float64).reshape(-1)[:6]]
-        body = {
-            "linear_acceleration": {"x": a[0], "y": a[1], "z": a[2]},
-            "angular_velocity": {"x": a[3], "y": a[4], "z": a[5]},
-        }
-        return "respecd.Imu", dumps({**head, **body, "respecd": _respecd_extra(frame)})
-    return _encode_image(frame, head, formats)
+        out.append(Message(sensor_topic(sensor), "foxglove.PointCloud", _points(frame.data, sensor, ts), base))
+    elif frame.modality == "imu":
+        a = [float(x) for x in np.asarray(frame.data, dtype=np.float64).reshape(-1)[:6]]
+        body = {"timestamp": {"sec": ts.sec, "nsec": ts.nsec}, "frame_id": sensor,
+                "linear_acceleration": {"x": a[0], "y": a[1], "z": a[2]},
+                "angular_velocity": {"x": a[3], "y": a[4], "z": a[5]}}
+        out.append(Message(sensor_topic(sensor), "respecd.Imu", dumps(body), base))
+    else:
+        schema, payload = _image(frame, sensor, ts, formats)
+        out.append(Message(sensor_topic(sensor), schema, payload, base))
+        if frame.modality == "thermal" and formats.thermal_colormap != "none":
+            out.append(_thermal_display(frame, sensor, ts, formats))
+    return out
 
 
-def _encode_image(frame: Frame, head: dict[str, Any], formats: ImageFormats) -> tuple[str, bytes]:
+def encode_raw(frame: Frame, sensor: str, log_ns: int) -> Message:
+    """A radar frame's UART bytes (``respecd.RawBytes``, JSON as in the first format)."""
+    import base64
+
+    head = {"timestamp": {"sec": log_ns // 1_000_000_000, "nsec": log_ns % 1_000_000_000}, "frame_id": sensor,
+            "data": base64.b64encode(bytes(frame.meta["raw"])).decode(), "respecd": {"t": frame.t, "seq": frame.seq}}
+    meta = {"sensor": sensor, "modality": frame.modality, "format": "ti-mmwave-uart"}
+    return Message(raw_topic(sensor), "respecd.RawBytes", dumps(head), meta)
+
+
+def _points(data: np.ndarray, sensor: str, ts: fox.Timestamp) -> bytes:
+    points = np.ascontiguousarray(data, dtype="<f4").reshape(-1, len(RADAR_FIELDS))
+    float32 = fox.PackedElementFieldNumericType.Float32
+    fields = [fox.PackedElementField(name=n, offset=4 * i, type=float32) for i, n in enumerate(RADAR_FIELDS)]
+    pose = fox.Pose(position=fox.Vector3(x=0.0, y=0.0, z=0.0), orientation=fox.Quaternion(x=0.0, y=0.0, z=0.0, w=1.0))
+    return fox.PointCloud(timestamp=ts, frame_id=sensor, pose=pose, point_stride=RADAR_STRIDE, fields=fields,
+                          data=points.tobytes()).encode()
+
+
+def _image(frame: Frame, sensor: str, ts: fox.Timestamp, formats: ImageFormats) -> tuple[str, bytes]:
     data = frame.data
-    extra = _respecd_extra(frame)
-    if data.dtype == np.uint8 and formats.rgb in ("jpeg", "png"):
+    if data.dtype == np.uint8 and data.ndim == 3 and formats.rgb in ("jpeg", "png"):
         jpeg = formats.rgb == "jpeg"
         ext, params = (".jpg", [cv2.IMWRITE_JPEG_QUALITY, formats.jpeg_quality]) if jpeg else (".png", [])
         ok, buf = cv2.imencode(ext, data, params)
         if ok:
-            body = {"format": "jpeg" if ext == ".jpg" else "png"}
-            return "foxglove.CompressedImage", with_data({**head, **body}, buf.tobytes(), extra)
+            msg = fox.CompressedImage(timestamp=ts, frame_id=sensor, data=buf.tobytes(), format=formats.rgb)
+            return "foxglove.CompressedImage", msg.encode()
     if data.dtype == np.uint16 and formats.wide == "png":
         ok, buf = cv2.imencode(".png", data, [cv2.IMWRITE_PNG_COMPRESSION, 1])  # level 1: fast, still lossless
         if ok:
-            return "foxglove.CompressedImage", with_data({**head, "format": "png"}, buf.tobytes(), extra)
-    encoding = _raw_encoding(frame.modality, data)
-    height, width = data.shape[:2]
-    body = {
-        "width": int(width),
-        "height": int(height),
-        "encoding": encoding,
-        "step": int(width * data.itemsize * (data.shape[2] if data.ndim == 3 else 1)),
-    }
-    pixels = np.ascontiguousarray(data.astype(data.dtype.newbyteorder("<"), copy=False))
-    return "foxglove.RawImage", with_data({**head, **body}, pixels.tobytes(), extra)
-
-
-_RAW_ENCODINGS = {  # Foxglove RawImage encodings; data is little-endian
-    ("uint8", 3): "bgr8",
-    ("uint8", 1): "mono8",
-    ("uint16", 1): "mono16",
-    ("float32", 1): "32FC1",
-}
-_RAW_DTYPES = {"bgr8": (np.uint8, 3), "rgb8": (np.uint8, 3), "mono8": (np.uint8, 1), "8UC1": (np.uint8, 1),
-               "mono16": (np.uint16, 1), "16UC1": (np.uint16, 1), "32FC1": (np.float32, 1)}
-
-
-def _raw_encoding(modality: Modality, data: np.ndarray) -> str:
+            return "foxglove.CompressedImage", fox.CompressedImage(timestamp=ts, frame_id=sensor, data=buf.tobytes(),
+                                                                   format="png").encode()
     channels = data.shape[2] if data.ndim == 3 else 1
     encoding = _RAW_ENCODINGS.get((data.dtype.name, channels))
     if encoding is None:
-        raise ValueError(f"cannot record {modality} frames of dtype {data.dtype} with {channels} channel(s)")
-    return "16UC1" if encoding == "mono16" and modality == "depth" else encoding
+        raise ValueError(f"cannot record {frame.modality} frames of dtype {data.dtype} with {channels} channel(s)")
+    if encoding == "mono16" and frame.modality == "depth":
+        encoding = "16UC1"  # millimetres, as ROS depth images
+    height, width = data.shape[:2]
+    pixels = np.ascontiguousarray(data.astype(data.dtype.newbyteorder("<"), copy=False))
+    msg = fox.RawImage(timestamp=ts, frame_id=sensor, width=int(width), height=int(height), encoding=encoding,
+                       step=int(width * data.itemsize * channels), data=pixels.tobytes())
+    return "foxglove.RawImage", msg.encode()
 
 
-def decode_frame(schema: str, payload: bytes, fallback_modality: Modality, log_ns: int = 0) -> Frame:
-    """The ``Frame`` a logged sensor message stands for (time and seq from the ``respecd`` object)."""
-    msg = json.loads(payload)
-    extra = msg.get("respecd") or {}
-    modality = extra.get("modality", fallback_modality)
-    if schema == "foxglove.PointCloud":
-        data = _decode_points(msg)
-    elif schema == "respecd.Imu":
-        a, g = msg["linear_acceleration"], msg["angular_velocity"]
-        data = np.array([a["x"], a["y"], a["z"], g["x"], g["y"], g["z"]], dtype=np.float32)
-    elif schema == "foxglove.CompressedImage":
-        raw = np.frombuffer(base64.b64decode(msg["data"]), dtype=np.uint8)
-        data = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
-        if data is None:
-            raise ValueError(f"undecodable {msg.get('format')} image")
-    elif schema == "foxglove.RawImage":
-        data = _decode_raw_image(msg)
+_COLORMAPS = {"inferno": cv2.COLORMAP_INFERNO}
+
+
+def thermal_kelvin(data: np.ndarray, meta: dict[str, Any], counts_per_k: float) -> np.ndarray:
+    """float32 kelvin of thermal pixels (raw counts, or already kelvin when ``meta["units"] == "K"``)."""
+    kelvin = data.astype(np.float32)
+    return kelvin if meta.get("units") == "K" else kelvin / counts_per_k
+
+
+def _thermal_display(frame: Frame, sensor: str, ts: fox.Timestamp, formats: ImageFormats) -> Message:
+    low, high = formats.thermal_range_k
+    data = frame.data[:, :, 0] if frame.data.ndim == 3 else frame.data
+    if data.dtype == np.uint8:
+        scaled = data
     else:
-        raise ValueError(f"unknown sensor schema {schema!r}")
-    t = float(extra.get("t", log_ns / 1e9))
-    return Frame(modality=modality, t=t, seq=int(extra.get("seq", 0)), data=data, meta=dict(extra.get("meta") or {}))
+        kelvin = thermal_kelvin(data, frame.meta, formats.thermal_counts_per_k)
+        scaled = np.clip((kelvin - low) * (255.0 / (high - low)), 0, 255).astype(np.uint8)
+    ok, buf = cv2.imencode(".jpg", cv2.applyColorMap(scaled, _COLORMAPS[formats.thermal_colormap]),
+                           [cv2.IMWRITE_JPEG_QUALITY, formats.jpeg_quality])
+    if not ok:
+        raise ValueError("thermal display image: JPEG encoding failed")
+    return Message(colormap_topic(sensor), "foxglove.CompressedImage",
+                   fox.CompressedImage(timestamp=ts, frame_id=sensor, data=buf.tobytes(), format="jpeg").encode(),
+                   thermal_scale(sensor, formats))
 
 
-def _decode_points(msg: dict[str, Any]) -> np.ndarray:
-    stride = int(msg["point_stride"])
-    raw = base64.b64decode(msg["data"])
-    n = len(raw) // stride if stride else 0
-    offsets = {f["name"]: int(f["offset"]) for f in msg["fields"]}
-    rows = np.frombuffer(raw, dtype=np.uint8)[: n * stride].reshape(n, stride)
-    cols = []
-    for name in RADAR_FIELDS:
-        off = offsets.get(name)
-        if off is None:
-            cols.append(np.zeros(n, dtype=np.float32))
-        else:
-            cols.append(rows[:, off : off + 4].copy().view("<f4").reshape(n))
-    return np.stack(cols, axis=1).astype(np.float32) if n else np.zeros((0, len(RADAR_FIELDS)), np.float32)
+def thermal_scale(sensor: str, formats: ImageFormats) -> dict[str, str]:
+    """Channel metadata of the display image: what its colours mean."""
+    low, high = formats.thermal_range_k
+    return {"sensor": sensor, "modality": "thermal", "display": "true", "colormap": formats.thermal_colormap,
+            "source_topic": sensor_topic(sensor), "min_k": f"{low:g}", "max_k": f"{high:g}",
+            "min_c": f"{low - 273.15:.2f}", "max_c": f"{high - 273.15:.2f}",
+            "scale": f"{formats.thermal_colormap} from {low - 273.15:.1f} °C (dark) to {high - 273.15:.1f} °C (bright)"}
 
 
-def _decode_raw_image(msg: dict[str, Any]) -> np.ndarray:
-    dtype, channels = _RAW_DTYPES[msg["encoding"]]
-    width, height, step = int(msg["width"]), int(msg["height"]), int(msg["step"])
-    raw = np.frombuffer(base64.b64decode(msg["data"]), dtype=np.uint8).reshape(height, step)
-    row_bytes = width * channels * np.dtype(dtype).itemsize
-    pixels = raw[:, :row_bytes].copy().view(np.dtype(dtype).newbyteorder("<")).astype(dtype)
-    return pixels.reshape(height, width, channels) if channels > 1 else pixels.reshape(height, width)
+# -- decode -------------------------------------------------------------------------------
+@cache
+def _decoder(name: str, data: bytes) -> Callable[[bytes], Any]:
+    from mcap.records import Schema
+    from mcap_protobuf.decoder import DecoderFactory
+
+    decoder = DecoderFactory().decoder_for("protobuf", Schema(id=1, name=name, encoding="protobuf", data=data))
+    if decoder is None:
+        raise ValueError(f"cannot build a protobuf decoder for {name!r}")
+    return decoder
 
 
-def config_dict(config: SensorConfig) -> dict[str, Any]:
-    return {
-        "modality": config.modality,
-        "enabled": config.enabled,
-        "rate_hz": config.rate_hz,
-        "resolution": list(config.resolution) if config.resolution else None,
-        "mode": config.mode,
-        "notes": list(config.notes),
-    }
+def decode_message(schema: LoggedSchema, payload: bytes) -> Any:
+    """A protobuf message object (by the log's own schema) or, for JSON channels, a dict."""
+    if schema.message_encoding == "protobuf":
+        return _decoder(schema.name, schema.data)(payload)
+    return json.loads(payload)
 
 
-def config_from_dict(d: dict[str, Any]) -> SensorConfig:
-    res = d.get("resolution")
-    return SensorConfig(
-        modality=d["modality"],
-        enabled=bool(d.get("enabled", True)),
-        rate_hz=float(d.get("rate_hz", 30.0)),
-        resolution=(int(res[0]), int(res[1])) if res else None,
-        mode=d.get("mode"),
-        notes=tuple(d.get("notes") or ()),
-    )
-
-
-def encode_config(sensor: str, t: float, config: SensorConfig) -> bytes:
-    return dumps({"t": t, "sensor": sensor, **config_dict(config)})
-
-
-def encode_percept(p: Percept) -> bytes:
-    rgb = p.bundle.frames.get("rgb") if p.bundle is not None else None
-    return dumps({
-        "t": p.t,
-        "conf_agg": p.conf_agg,
-        "latency_s": p.latency,
-        "contributions": p.contributions,
-        "detections": [
-            {"box": list(d.box), "confidence": d.confidence, "label": d.label} for d in p.detections
-        ],
-        "pixels": int(rgb.data.shape[0] * rgb.data.shape[1]) if rgb is not None else 0,
-    })
-
-
-_BOX_COLOR = {"r": 0.1, "g": 0.9, "b": 0.2, "a": 1.0}
-_TEXT_BG = {"r": 0.0, "g": 0.0, "b": 0.0, "a": 0.6}
-_WHITE = {"r": 1.0, "g": 1.0, "b": 1.0, "a": 1.0}
-
-
-def encode_annotations(p: Percept, log_ns: int) -> bytes:
-    """Detections as a ``foxglove.ImageAnnotations`` overlay, stamped like the RGB frame."""
-    ts = stamp(log_ns)
-    points, labels = [], []
-    for d in p.detections:
-        x1, y1, x2, y2 = (float(v) for v in d.box)
-        corners = [{"x": x1, "y": y1}, {"x": x2, "y": y1}, {"x": x2, "y": y2}, {"x": x1, "y": y2}]
-        points.append({"timestamp": ts, "type": 2, "points": corners, "outline_color": _BOX_COLOR,
-                       "outline_colors": [], "fill_color": {"r": 0, "g": 0, "b": 0, "a": 0}, "thickness": 2.0})
-        labels.append({"timestamp": ts, "position": {"x": x1, "y": max(0.0, y1 - 14)},
-                       "text": f"{d.label} {d.confidence:.2f}", "font_size": 12.0, "text_color": _WHITE,
-                       "background_color": _TEXT_BG})
-    return dumps({"circles": [], "points": points, "labels": labels})
-
-
-def encode_decision(d: Decision) -> bytes:
-    return dumps({
-        "t": d.t,
-        "state": list(d.state),
-        "action": d.action,
-        "reward": d.reward,
-        "epsilon": d.epsilon,
-        "q_values": list(d.q_values),
-        "terms": d.terms,
-        "configs": [config_dict(c) for c in d.configs],
-    })
-
-
-def encode_bundle(b: Bundle) -> bytes:
-    return dumps({
-        "t": b.t,
-        "seq": b.seq,
-        "rate_hz": b.sync.rate_hz,
-        "jitter_ms": b.sync.jitter_ms,
-        "stale_ratio": b.sync.stale_ratio,
-        "health": b.sync.health.value,
-        "frames": {m: [f.t, f.seq] for m, f in b.frames.items()},
-    })
+def decode_frame(schema: LoggedSchema, payload: bytes, fallback_modality: Modality, log_ns: int = 0,
+                 meta: dict[str, Any] | None = None) -> Frame:
+    """The ``Frame`` a logged sensor message stands for; ``meta`` is its FrameMeta (new
+    format). First-format logs (JSON, inline ``respecd`` object) decode as they always did."""
+    if schema.message_encoding == "json" and meta is None:
+        return legacy.decode_frame(schema.name, payload, fallback_modality, log_ns)
+    meta = meta or {}
+    modality = meta.get("modality", fallback_modality)
+    msg = decode_message(schema, payload)
+    if schema.name == "foxglove.PointCloud":
+        data = legacy.points_array(msg.data, msg.point_stride, {f.name: f.offset for f in msg.fields})
+    elif schema.name == "respecd.Imu":
+        data = legacy.imu_array(msg)
+    elif schema.name == "foxglove.CompressedImage":
+        data = legacy.decode_compressed(msg.data, msg.format)
+    elif schema.name == "foxglove.RawImage":
+        data = legacy.decode_raw(msg.data, msg.encoding, msg.width, msg.height, msg.step)
+    else:
+        raise ValueError(f"unknown sensor schema {schema.name!r}")
+    t = float(meta.get("t", log_ns / 1e9))
+    return Frame(modality=modality, t=t, seq=int(meta.get("seq", 0)), data=data, meta=dict(meta.get("meta") or {}))

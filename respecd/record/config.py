@@ -57,6 +57,13 @@ class RecordingConfig(StrictModel):
             "or png (CompressedImage, lossless, ~15% smaller files)."
         ),
     )
+    thermal_colormap: Literal["inferno", "none"] = Field(
+        "inferno",
+        description=(
+            "Beside the exact thermal image, a display image (JPEG) colormapped over perception.thermal_range_k; "
+            "the scale is in the channel metadata. none: only the exact image."
+        ),
+    )
     queue_size: int = Field(
         256, ge=8, le=65536, description="Messages waiting for the writer thread before the oldest is dropped."
     )

@@ -27,7 +27,9 @@ from mcap.stream_reader import StreamReader
 
 from respecd.errors import InputError
 from respecd.messages import Frame, Modality
-from respecd.record import codec
+from respecd.record import codec, legacy
+from respecd.record.codec import LoggedSchema
+from respecd.record.topics import meta_topic, raw_topic, sensor_topic
 
 log = structlog.get_logger(__name__)
 
@@ -60,6 +62,7 @@ class ChannelInfo:
     schema: str
     metadata: dict[str, str]
     count: int = 0
+    encoding: str = "json"  # message encoding: "protobuf" for Foxglove types in format 2
 
 
 @dataclass
@@ -100,8 +103,8 @@ class SessionLog:
         entry = self.metadata.get("respecd.profile")
         return json.loads(entry["json"]) if entry and "json" in entry else None
 
-    def messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, str, int, bytes]]:
-        """(topic, schema name, log time ns, payload) in file order, up to a cut if any."""
+    def messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, LoggedSchema, int, bytes]]:
+        """(topic, schema, log time ns, payload) in file order, up to a cut if any."""
         wanted = set(topics) if topics is not None else None
         with open(self.path, "rb") as f:
             yield from _iter_messages(f, wanted)
@@ -112,20 +115,23 @@ class SessionLog:
         With ``demux`` (shared by every sensor of a replay) the file is read once in all,
         instead of once per sensor.
         """
-        topic, raw = f"/sensors/{sensor}", f"/sensors/{sensor}/raw"
-        messages = demux.messages_for(sensor) if demux is not None else self.messages([topic, raw])
-        yield from _pair_frames(messages, topic, self.sensors.get(sensor, "rgb"))
+        topics = [sensor_topic(sensor), raw_topic(sensor), meta_topic(sensor)]
+        messages = demux.messages_for(sensor) if demux is not None else self.messages(topics)
+        yield from _pair_frames(messages, sensor, self.sensors.get(sensor, "rgb"))
 
     def side_data(self, rgb_sensor: str | None) -> tuple[list[tuple[float, Any]], list[dict[str, Any]]]:
         """One pass for what a replay needs besides frames: the RGB frames' ground truth as
         (t, gt) — empty when the first RGB frame has none — and the recorded percepts."""
-        rgb_topic = f"/sensors/{rgb_sensor}" if rgb_sensor else None
+        rgb_topic = None
+        if rgb_sensor:  # format 2 keeps time and truth in the FrameMeta channel, format 1 inline
+            first_format = meta_topic(rgb_sensor) not in self.channels
+            rgb_topic = sensor_topic(rgb_sensor) if first_format else meta_topic(rgb_sensor)
         truth: list[tuple[float, Any]] = []
         percepts: list[dict[str, Any]] = []
         want_truth = rgb_topic is not None
-        for topic, _, _, data in self.messages([t for t in (rgb_topic, "/respecd/percept") if t]):
+        for topic, schema, _, data in self.messages([t for t in (rgb_topic, "/respecd/percept") if t]):
             if topic == rgb_topic and want_truth:
-                extra = codec.frame_extra(data)
+                extra = legacy.frame_extra(data) if schema.name != "respecd.FrameMeta" else json.loads(data)
                 meta = extra.get("meta") or {}
                 if "gt" not in meta:
                     want_truth = False
@@ -141,18 +147,26 @@ class SessionLog:
             yield json.loads(data)
 
 
-def _pair_frames(messages: Iterable[tuple[str, str, int, bytes]], topic: str, modality: Modality) -> Iterator[Frame]:
-    """Decode frame messages; a raw-bytes message right after its frame (same seq) joins it."""
+def _pair_frames(
+    messages: Iterable[tuple[str, LoggedSchema, int, bytes]], sensor: str, modality: Modality
+) -> Iterator[Frame]:
+    """Decode one sensor's frame messages. Its FrameMeta (format 2) comes just before the
+    frame with the same log time; a raw-bytes message right after it (same seq) joins it."""
+    topic, meta = sensor_topic(sensor), meta_topic(sensor)
     pending: Frame | None = None
+    stashed: tuple[int, dict[str, Any]] | None = None
     for t, schema, ns, data in messages:
-        if t == topic:
+        if t == meta:
+            stashed = (ns, json.loads(data))
+        elif t == topic:
             if pending is not None:
                 yield pending
-            pending = codec.decode_frame(schema, data, modality, ns)
+            frame_meta = stashed[1] if stashed is not None and stashed[0] == ns else None
+            pending, stashed = codec.decode_frame(schema, data, modality, ns, frame_meta), None
         elif pending is not None:
-            msg = json.loads(data)
-            if int((msg.get("respecd") or {}).get("seq", -1)) == pending.seq:
-                pending.meta["raw"] = codec.b64decode(msg["data"])
+            seq, raw = legacy.raw_bytes(data)
+            if seq == pending.seq:
+                pending.meta["raw"] = raw
                 yield pending
                 pending = None
     if pending is not None:
@@ -171,15 +185,14 @@ class Demux:
     MAX_PARKED = 4096
 
     def __init__(self, session: SessionLog) -> None:
-        self._owner = {f"/sensors/{n}": n for n in session.sensors}
-        self._owner.update({f"/sensors/{n}/raw": n for n in session.sensors})
+        self._owner = {topic(n): n for n in session.sensors for topic in (sensor_topic, raw_topic, meta_topic)}
         self._source = session.messages(list(self._owner))
-        self._parked: dict[str, deque[tuple[str, str, int, bytes]]] = {n: deque() for n in session.sensors}
+        self._parked: dict[str, deque[tuple[str, LoggedSchema, int, bytes]]] = {n: deque() for n in session.sensors}
         self._lock = threading.Lock()
         self._done = False
         self.dropped = 0
 
-    def next_for(self, sensor: str) -> tuple[str, str, int, bytes] | None:
+    def next_for(self, sensor: str) -> tuple[str, LoggedSchema, int, bytes] | None:
         with self._lock:
             queue = self._parked[sensor]
             while not queue and not self._done:
@@ -194,14 +207,17 @@ class Demux:
                 owner.append(item)
             return queue.popleft() if queue else None
 
-    def messages_for(self, sensor: str) -> Iterator[tuple[str, str, int, bytes]]:
+    def messages_for(self, sensor: str) -> Iterator[tuple[str, LoggedSchema, int, bytes]]:
         while (item := self.next_for(sensor)) is not None:
             yield item
 
 
-def _iter_messages(f: IO[bytes], wanted: set[str] | None) -> Iterator[tuple[str, str, int, bytes]]:
-    schemas: dict[int, str] = {}
-    topics: dict[int, tuple[str, str]] = {}  # channel id -> (topic, schema name)
+_NO_SCHEMA = LoggedSchema("")
+
+
+def _iter_messages(f: IO[bytes], wanted: set[str] | None) -> Iterator[tuple[str, LoggedSchema, int, bytes]]:
+    schemas: dict[int, Schema] = {}
+    topics: dict[int, tuple[str, LoggedSchema]] = {}  # channel id -> (topic, schema)
     records = StreamReader(_StrictFile(f), record_size_limit=1 << 30).records  # type: ignore[arg-type]
     while True:
         try:
@@ -211,11 +227,13 @@ def _iter_messages(f: IO[bytes], wanted: set[str] | None) -> Iterator[tuple[str,
         except _CUT:
             return  # a cut: everything before it has been served
         if isinstance(record, Schema):
-            schemas[record.id] = record.name
+            schemas[record.id] = record
         elif isinstance(record, Channel):
-            topics[record.id] = (record.topic, schemas.get(record.schema_id, ""))
+            schema = schemas.get(record.schema_id)
+            topics[record.id] = (record.topic, LoggedSchema(schema.name if schema else "", record.message_encoding,
+                                                            schema.data if schema else b""))
         elif isinstance(record, Message):
-            topic, schema = topics.get(record.channel_id, ("", ""))
+            topic, schema = topics.get(record.channel_id, ("", _NO_SCHEMA))
             if wanted is None or topic in wanted:
                 yield topic, schema, record.log_time, record.data
 
@@ -258,7 +276,8 @@ def _from_summary(session: SessionLog) -> bool:
     for cid, ch in summary.channels.items():
         schema = summary.schemas.get(ch.schema_id)
         session.channels[ch.topic] = ChannelInfo(
-            ch.topic, schema.name if schema else "", dict(ch.metadata), stats.channel_message_counts.get(cid, 0)
+            ch.topic, schema.name if schema else "", dict(ch.metadata), stats.channel_message_counts.get(cid, 0),
+            ch.message_encoding,
         )
     session.start_ns, session.end_ns = stats.message_start_time, stats.message_end_time
     session.message_count = stats.message_count
@@ -282,7 +301,8 @@ def _scan(session: SessionLog) -> None:
             if isinstance(record, Schema):
                 schemas[record.id] = record.name
             elif isinstance(record, Channel) and record.id not in by_id:
-                by_id[record.id] = ChannelInfo(record.topic, schemas.get(record.schema_id, ""), dict(record.metadata))
+                by_id[record.id] = ChannelInfo(record.topic, schemas.get(record.schema_id, ""), dict(record.metadata),
+                                               encoding=record.message_encoding)
                 session.channels[record.topic] = by_id[record.id]
             elif isinstance(record, Metadata):
                 session.metadata[record.name] = dict(record.metadata)

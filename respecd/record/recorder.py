@@ -1,9 +1,10 @@
-"""Record a live session to MCAP without ever blocking the event loop.
+"""Record a live session to MCAP (and serve it live) without ever blocking the event loop.
 
 The daemon calls the ``on_*`` taps from the loop; each tap only appends the (immutable)
-message to a bounded deque. A worker thread encodes (JPEG/PNG, JSON) and writes. When the
-writer falls behind, the oldest message is dropped and counted (``dropped``, shown in the
-status line): a recorder must never slow the robot down.
+message to a bounded deque. A worker thread encodes each message once (JPEG/PNG, Foxglove
+protobuf, JSON) and hands it to its sinks: the MCAP segment writer and/or the Foxglove
+live view. When the worker falls behind, the oldest message is dropped and counted
+(``dropped``, shown in the status line): a recorder must never slow the robot down.
 """
 
 from __future__ import annotations
@@ -14,14 +15,25 @@ import time
 from collections import deque
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import structlog
 
 from respecd.clock import Clock
 from respecd.messages import Bundle, Decision, Frame, Percept, SensorConfig
-from respecd.record import codec
+from respecd.record import codec, events
+from respecd.record.codec import Message
 from respecd.record.config import RecordingConfig
+from respecd.record.scene import PERIOD_S, Scene
+from respecd.record.topics import (  # noqa: F401 - re-exported: the recorder's topics
+    TOPIC_CONFIG,
+    TOPIC_DECISION,
+    TOPIC_DETECTIONS,
+    TOPIC_PERCEPT,
+    TOPIC_SYNC,
+    raw_topic,
+    sensor_topic,
+)
 from respecd.record.writer import SegmentWriter, session_metadata
 
 log = structlog.get_logger(__name__)
@@ -33,19 +45,23 @@ DRAIN_S = 0.8
 CLOSE_TIMEOUT_S = 5.0
 SENSOR_KINDS = ("frame", "raw")  # the costly ones to encode; the rest is always written
 
-TOPIC_PERCEPT = "/respecd/percept"
-TOPIC_DECISION = "/respecd/decision"
-TOPIC_CONFIG = "/respecd/config"
-TOPIC_SYNC = "/respecd/sync"
-TOPIC_DETECTIONS = "/respecd/detections"  # ImageAnnotations over the RGB channel, for Foxglove
 
 
-def sensor_topic(sensor: str) -> str:
-    return f"/sensors/{sensor}"
+class Sink(Protocol):
+    """Where encoded messages go (the MCAP writer, the live view); called from the worker."""
+
+    def wants(self, topic: str) -> bool: ...
+    def put(self, message: Message, log_ns: int, t: float) -> None: ...
+    def close(self) -> None: ...
 
 
-def raw_topic(sensor: str) -> str:
-    return f"/sensors/{sensor}/raw"
+def _formats(config: RecordingConfig, profile: Any) -> codec.ImageFormats:
+    dump = profile.model_dump(mode="json") if hasattr(profile, "model_dump") else dict(profile)
+    perception = dump.get("perception") or {}
+    return codec.ImageFormats(
+        config.rgb_format, config.jpeg_quality, config.depth_format, config.thermal_colormap,
+        tuple(perception.get("thermal_range_k", (273.0, 313.0))), float(perception.get("thermal_counts_per_k", 100.0)),
+    )
 
 
 def _rgb_sensor(profile: Any) -> str | None:
@@ -59,9 +75,14 @@ def _rgb_sensor(profile: Any) -> str | None:
 
 
 class Recorder:
-    """Taps for the daemon; encoding and file I/O in one worker thread."""
+    """Taps for the daemon; encoding and sink I/O in one worker thread.
 
-    def __init__(self, config: RecordingConfig, profile: Any, clock: Clock) -> None:
+    ``to_file`` writes the MCAP log; ``live`` (the Foxglove server) is another sink.
+    """
+
+    def __init__(
+        self, config: RecordingConfig, profile: Any, clock: Clock, live: Sink | None = None, to_file: bool = True
+    ) -> None:
         self.config = config
         self.profile = profile
         self.clock = clock
@@ -69,7 +90,13 @@ class Recorder:
         self.dropped = 0
         self.errors = 0
         self.cpu_s = 0.0  # worker thread CPU time, for the overhead benchmark
-        self._formats = codec.ImageFormats(config.rgb_format, config.jpeg_quality, config.depth_format)
+        self._formats = _formats(config, profile)
+        self._scene = Scene(profile)
+        self._live = live
+        self._to_file = to_file
+        self._sinks: list[Sink] = []
+        self._calibrated: dict[str, tuple[int, int, float]] = {}  # sensor -> (width, height, session t)
+        self._tf_t = -float("inf")
         self._queue: deque[tuple[str, str, Any]] = deque()
         self._cond = threading.Condition()
         self._closing = False
@@ -88,18 +115,24 @@ class Recorder:
     def written(self) -> int:
         return self._segments.messages if self._segments else 0
 
-    def start(self) -> Path:
+    def start(self) -> Path | None:
         """Open the first segment (profile as metadata) and start the writer thread."""
         started = datetime.now(timezone.utc)
         self._t0 = self.clock.now()
         self._epoch_ns = time.time_ns()
-        meta = session_metadata(self.profile, started, self._t0, self._epoch_ns)
-        self._segments = SegmentWriter(self.config, meta, started)
-        path = self._segments.open(self._t0)
+        path = None
+        if self._to_file:
+            meta = session_metadata(self.profile, started, self._t0, self._epoch_ns)
+            self._segments = SegmentWriter(self.config, meta, started)
+            path = self._segments.open(self._t0)
+            self._sinks.append(self._segments)
+        if self._live is not None:
+            self._sinks.append(self._live)
         # non-daemon: interpreter exit waits for finish(), so the summary is always written
         self._thread = threading.Thread(target=self._run, name="respecd-recorder")
         self._thread.start()
-        log.info("record.start", path=str(path), channels=sorted(self.channels))
+        log.info("record.start", path=str(path) if path else None, live=self._live is not None,
+                 channels=sorted(self.channels))
         return path
 
     # -- taps, called on the event loop: O(1), never block ------------------------------
@@ -152,7 +185,6 @@ class Recorder:
 
     # -- worker thread -------------------------------------------------------------------
     def _run(self) -> None:
-        assert self._segments is not None
         cpu0 = time.thread_time()
         try:
             while True:
@@ -172,50 +204,83 @@ class Recorder:
                     log.warning("record.write_failed", kind=kind, sensor=name or None, error=str(err), exc_info=True)
                 self.cpu_s = time.thread_time() - cpu0
         finally:
-            self._segments.finish()
+            for sink in self._sinks:
+                try:
+                    sink.close()
+                except Exception:  # noqa: BLE001 - thread boundary: the other sinks still close
+                    log.exception("record.sink_close_failed", sink=type(sink).__name__)
             self.cpu_s = time.thread_time() - cpu0
 
     def _log_ns(self, t: float) -> int:
         return self._epoch_ns + max(0, round((t - self._t0) * 1e9))
 
     def _write(self, kind: str, name: str, item: Any) -> None:
-        assert self._segments is not None
-        if kind == "percept":
-            self._write_annotations(item)
+        t = item[0] if kind == "config" else item.t
+        self._scene_messages(t)
         if kind == "frame":
-            frame: Frame = item
-            ns = self._log_ns(frame.t)
-            schema, payload = codec.encode_frame(frame, name, ns, self._formats)
-            meta = {"sensor": name, "modality": frame.modality}
-            self._segments.write(sensor_topic(name), schema, meta, ns, payload, frame.t)
+            self._write_frame(name, item)
         elif kind == "raw":
             ns = self._log_ns(item.t)
-            head = {"timestamp": codec.stamp(ns), "frame_id": name}
-            payload = codec.with_data(head, bytes(item.meta["raw"]), {"t": item.t, "seq": item.seq})
-            meta = {"sensor": name, "modality": item.modality, "format": "ti-mmwave-uart"}
-            self._segments.write(raw_topic(name), "respecd.RawBytes", meta, ns, payload, item.t)
+            self._emit(codec.encode_raw(item, name, ns), ns, item.t)
         else:
-            t = item[0] if kind == "config" else item.t
+            if kind == "percept":
+                self._write_annotations(item)
             payload, schema, topic = self._encode_own(kind, name, item)
-            self._segments.write(topic, schema, {}, self._log_ns(t), payload, t)
+            ns = self._log_ns(t)
+            self._emit(Message(topic, schema, payload, {}), ns, t)
+
+    def _emit(self, message: Message, log_ns: int, t: float) -> None:
+        for sink in self._sinks:
+            if sink.wants(message.topic):
+                sink.put(message, log_ns, t)
+
+    def _wanted(self, topic: str) -> bool:
+        return any(sink.wants(topic) for sink in self._sinks)
+
+    def _write_frame(self, name: str, frame: Frame) -> None:
+        if not self._wanted(sensor_topic(name)):
+            return  # live view only, nobody watching this sensor: no encoding at all
+        ns = self._log_ns(frame.t)
+        if frame.modality in ("rgb", "thermal", "depth") and frame.data.ndim >= 2:
+            self._calibrate(name, frame, ns)
+        for message in codec.encode_frame(frame, name, ns, self._formats):
+            self._emit(message, ns, frame.t)
+
+    def _calibrate(self, name: str, frame: Frame, log_ns: int) -> None:
+        """A CameraCalibration at the first frame, at every size change and every PERIOD_S."""
+        height, width = frame.data.shape[:2]
+        last = self._calibrated.get(name)
+        if last is not None and last[:2] == (width, height) and frame.t - last[2] < PERIOD_S:
+            return
+        self._calibrated[name] = (width, height, frame.t)
+        message = self._scene.calibration(name, width, height, log_ns)
+        if message is not None:
+            self._emit(message, log_ns, frame.t)
+
+    def _scene_messages(self, t: float) -> None:
+        """The profile's frame transforms, every PERIOD_S of session time."""
+        if t - self._tf_t >= PERIOD_S:
+            self._tf_t = t
+            ns = self._log_ns(t)
+            self._emit(self._scene.transforms(ns), ns, t)
 
     def _write_annotations(self, percept: Percept) -> None:
         """Boxes over the RGB image they were detected in (same timestamp as that frame)."""
         rgb = percept.bundle.frames.get("rgb") if percept.bundle is not None else None
-        if rgb is None or self._segments is None:
+        if rgb is None:
             return
         ns = self._log_ns(rgb.t)
         meta = {"image_topic": sensor_topic(self._rgb_sensor)} if self._rgb_sensor else {}
-        payload = codec.encode_annotations(percept, ns)
-        self._segments.write(TOPIC_DETECTIONS, "foxglove.ImageAnnotations", meta, ns, payload, percept.t)
+        message = Message(TOPIC_DETECTIONS, "foxglove.ImageAnnotations", events.encode_annotations(percept, ns), meta)
+        self._emit(message, ns, percept.t)
 
     @staticmethod
     def _encode_own(kind: str, name: str, item: Any) -> tuple[bytes, str, str]:
         if kind == "percept":
-            return codec.encode_percept(item), "respecd.Percept", TOPIC_PERCEPT
+            return events.encode_percept(item), "respecd.Percept", TOPIC_PERCEPT
         if kind == "decision":
-            return codec.encode_decision(item), "respecd.Decision", TOPIC_DECISION
+            return events.encode_decision(item), "respecd.Decision", TOPIC_DECISION
         if kind == "sync":
-            return codec.encode_bundle(item), "respecd.Sync", TOPIC_SYNC
+            return events.encode_bundle(item), "respecd.Sync", TOPIC_SYNC
         t, applied = item
-        return codec.encode_config(name, t, applied), "respecd.SensorConfig", TOPIC_CONFIG
+        return events.encode_config(name, t, applied), "respecd.SensorConfig", TOPIC_CONFIG

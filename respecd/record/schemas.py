@@ -1,19 +1,49 @@
-"""JSON Schemas of every channel in a respecd log.
+"""Schemas of every channel in a respecd log.
 
-Sensor channels use Foxglove's well-known schemas (field names and types as published in
-github.com/foxglove/schemas, ``schemas/jsonschema``) so a log opens in Foxglove with images
-and radar points visible. JSON message encoding carries bytes as base64 strings, as those
-schemas say (``contentEncoding: base64``). respecd's own channels have small schemas of
-their own. Messages may carry an extra ``respecd`` object (exact time, sequence, driver
-meta); JSON Schema allows extra properties, and Foxglove ignores them.
+Foxglove's well-known types (images, point clouds, image annotations, camera calibrations,
+frame transforms) come from Foxglove's own library, ``foxglove-sdk``: protobuf schemas
+(a ``FileDescriptorSet``) with binary payloads, so a log opens in Foxglove and validates
+against the official schemas; nothing is copied by hand. respecd's own channels stay JSON
+with the small JSON Schemas below.
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
+from functools import cache
 from typing import Any
 
-NUMERIC_FLOAT32 = 7  # foxglove.NumericType.FLOAT32
+import foxglove.messages as fox
+
+
+@dataclass(frozen=True)
+class SchemaDef:
+    """What an MCAP schema record and its channels need: name, schema encoding and data,
+    and the message encoding of the channels that use it."""
+
+    name: str
+    encoding: str  # schema encoding: "protobuf" | "jsonschema"
+    data: bytes
+    message_encoding: str  # "protobuf" | "json"
+
+
+@cache
+def foxglove_schema(name: str) -> SchemaDef:
+    """``foxglove.RawImage`` etc., as foxglove-sdk publishes it (protobuf)."""
+    schema = getattr(fox, name.removeprefix("foxglove.")).get_schema()
+    return SchemaDef(schema.name, schema.encoding, bytes(schema.data), "protobuf")
+
+
+@cache
+def own_schema(name: str) -> SchemaDef:
+    """One of respecd's own JSON channels (``respecd.Percept`` ...)."""
+    return SchemaDef(name, "jsonschema", json.dumps(SCHEMAS[name], separators=(",", ":")).encode(), "json")
+
+
+def schema_def(name: str) -> SchemaDef:
+    return foxglove_schema(name) if name.startswith("foxglove.") else own_schema(name)
+
 
 _TIME = {
     "type": "object",
@@ -28,129 +58,6 @@ _FRAME_ID = {"type": "string", "description": "Frame of reference"}
 _BYTES = {"type": "string", "contentEncoding": "base64"}
 _NUMBER = {"type": "number"}
 _VECTOR3 = {"type": "object", "properties": {"x": _NUMBER, "y": _NUMBER, "z": _NUMBER}}
-
-COMPRESSED_IMAGE: dict[str, Any] = {
-    "title": "foxglove.CompressedImage",
-    "description": "A compressed image",
-    "type": "object",
-    "properties": {
-        "timestamp": _TIME,
-        "frame_id": _FRAME_ID,
-        "data": {**_BYTES, "description": "Compressed image data"},
-        "format": {"type": "string", "description": "Image format (jpeg, png, webp, avif)"},
-    },
-}
-
-RAW_IMAGE: dict[str, Any] = {
-    "title": "foxglove.RawImage",
-    "description": "A raw image",
-    "type": "object",
-    "properties": {
-        "timestamp": _TIME,
-        "frame_id": _FRAME_ID,
-        "width": {"type": "integer", "minimum": 0, "description": "Image width"},
-        "height": {"type": "integer", "minimum": 0, "description": "Image height"},
-        "encoding": {"type": "string", "description": "Encoding of the raw image data (mono16, 16UC1, 32FC1, ...)"},
-        "step": {"type": "integer", "minimum": 0, "description": "Byte length of a single row"},
-        "data": {**_BYTES, "description": "Raw image data"},
-    },
-}
-
-_NUMERIC_TYPE = {
-    "title": "foxglove.NumericType",
-    "oneOf": [
-        {"title": title, "const": i}
-        for i, title in enumerate(
-            ["UNKNOWN", "UINT8", "INT8", "UINT16", "INT16", "UINT32", "INT32", "FLOAT32", "FLOAT64"]
-        )
-    ],
-}
-
-POINT_CLOUD: dict[str, Any] = {
-    "title": "foxglove.PointCloud",
-    "description": "A collection of N-dimensional points",
-    "type": "object",
-    "properties": {
-        "timestamp": _TIME,
-        "frame_id": _FRAME_ID,
-        "pose": {
-            "title": "foxglove.Pose",
-            "type": "object",
-            "properties": {
-                "position": {"title": "foxglove.Vector3", **_VECTOR3},
-                "orientation": {
-                    "title": "foxglove.Quaternion",
-                    "type": "object",
-                    "properties": {"x": _NUMBER, "y": _NUMBER, "z": _NUMBER, "w": _NUMBER},
-                },
-            },
-        },
-        "point_stride": {"type": "integer", "minimum": 0, "description": "Number of bytes between points in `data`"},
-        "fields": {
-            "type": "array",
-            "items": {
-                "title": "foxglove.PackedElementField",
-                "type": "object",
-                "properties": {
-                    "name": {"type": "string"},
-                    "offset": {"type": "integer", "minimum": 0},
-                    "type": _NUMERIC_TYPE,
-                },
-            },
-        },
-        "data": {**_BYTES, "description": "Point data, interpreted using `fields`"},
-    },
-}
-
-_COLOR = {"title": "foxglove.Color", "type": "object", "properties": {k: _NUMBER for k in "rgba"}}
-_POINT2 = {"title": "foxglove.Point2", "type": "object", "properties": {"x": _NUMBER, "y": _NUMBER}}
-_POINTS_TYPE = {
-    "title": "foxglove.PointsAnnotationType",
-    "oneOf": [
-        {"title": title, "const": i}
-        for i, title in enumerate(["UNKNOWN", "POINTS", "LINE_LOOP", "LINE_STRIP", "LINE_LIST"])
-    ],
-}
-
-IMAGE_ANNOTATIONS: dict[str, Any] = {
-    "title": "foxglove.ImageAnnotations",
-    "description": "Array of annotations for a 2D image",
-    "type": "object",
-    "properties": {
-        "circles": {"type": "array", "items": {"title": "foxglove.CircleAnnotation", "type": "object"}},
-        "points": {
-            "type": "array",
-            "items": {
-                "title": "foxglove.PointsAnnotation",
-                "type": "object",
-                "properties": {
-                    "timestamp": _TIME,
-                    "type": _POINTS_TYPE,
-                    "points": {"type": "array", "items": _POINT2},
-                    "outline_color": _COLOR,
-                    "outline_colors": {"type": "array", "items": _COLOR},
-                    "fill_color": _COLOR,
-                    "thickness": _NUMBER,
-                },
-            },
-        },
-        "labels": {
-            "type": "array",
-            "items": {
-                "title": "foxglove.TextAnnotation",
-                "type": "object",
-                "properties": {
-                    "timestamp": _TIME,
-                    "position": _POINT2,
-                    "text": {"type": "string"},
-                    "font_size": _NUMBER,
-                    "text_color": _COLOR,
-                    "background_color": _COLOR,
-                },
-            },
-        },
-    },
-}
 
 IMU: dict[str, Any] = {
     "title": "respecd.Imu",
@@ -241,13 +148,21 @@ SYNC: dict[str, Any] = {
     },
 }
 
-SCHEMAS: dict[str, dict[str, Any]] = {
-    s["title"]: s
-    for s in (COMPRESSED_IMAGE, RAW_IMAGE, POINT_CLOUD, IMAGE_ANNOTATIONS, IMU, RAW_BYTES, SENSOR_CONFIG, PERCEPT,
-              DECISION, SYNC)
+FRAME_META: dict[str, Any] = {
+    "title": "respecd.FrameMeta",
+    "description": (
+        "What a Foxglove sensor message cannot carry: the frame's exact session time, sequence number, modality "
+        "and the driver's metadata (the simulator's ground truth 'gt'); written just before the frame, same log time"
+    ),
+    "type": "object",
+    "properties": {
+        "t": _NUMBER,
+        "seq": {"type": "integer"},
+        "modality": {"type": "string"},
+        "meta": {"type": "object"},
+    },
 }
 
-
-def schema_bytes(name: str) -> bytes:
-    """The schema record's data: the JSON Schema document, UTF-8."""
-    return json.dumps(SCHEMAS[name], separators=(",", ":")).encode()
+SCHEMAS: dict[str, dict[str, Any]] = {
+    s["title"]: s for s in (IMU, RAW_BYTES, FRAME_META, SENSOR_CONFIG, PERCEPT, DECISION, SYNC)
+}

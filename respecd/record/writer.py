@@ -17,13 +17,16 @@ from typing import IO, Any
 import structlog
 from mcap.writer import CompressionType, Writer
 
+from respecd.record.codec import Message
 from respecd.record.config import RecordingConfig
-from respecd.record.schemas import schema_bytes
+from respecd.record.schemas import schema_def
 
 log = structlog.get_logger(__name__)
 
-MCAP_PROFILE = ""  # no ROS profile: JSON messages with jsonschema schemas
+MCAP_PROFILE = ""  # no ROS profile: Foxglove protobuf types and respecd JSON channels
 LIBRARY = "respecd"
+# 1: JSON messages, base64 payloads (respecd 0.1.0); 2: Foxglove protobuf types + FrameMeta channels
+LOG_FORMAT = "2"
 _COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
 
 
@@ -83,11 +86,12 @@ class SegmentWriter:
         assert self._writer is not None and self._file is not None
         channel_id = self._channels.get(topic)
         if channel_id is None:
+            definition = schema_def(schema)
             schema_id = self._schemas.get(schema)
             if schema_id is None:
-                schema_id = self._writer.register_schema(schema, "jsonschema", schema_bytes(schema))
+                schema_id = self._writer.register_schema(schema, definition.encoding, definition.data)
                 self._schemas[schema] = schema_id
-            channel_id = self._writer.register_channel(topic, "json", schema_id, channel_meta)
+            channel_id = self._writer.register_channel(topic, definition.message_encoding, schema_id, channel_meta)
             self._channels[topic] = channel_id
         self._writer.add_message(channel_id, log_time=log_ns, data=payload, publish_time=log_ns)
         self.messages += 1
@@ -101,6 +105,16 @@ class SegmentWriter:
         if too_big or too_old:
             self.finish()
             self.open(t)
+
+    # -- the recorder's sink interface --------------------------------------------------
+    def wants(self, topic: str) -> bool:
+        return True  # a log keeps every channel it was asked to record
+
+    def put(self, message: Message, log_ns: int, t: float) -> None:
+        self.write(message.topic, message.schema, message.channel_meta, log_ns, message.payload, t)
+
+    def close(self) -> None:
+        self.finish()
 
     def finish(self) -> None:
         """Write the summary and footer of the current segment and close it (idempotent)."""
@@ -131,5 +145,6 @@ def session_metadata(profile: Any, started: datetime, t0: float, epoch_ns: int) 
             "clock_t0": repr(t0),
             "epoch_ns_at_t0": str(epoch_ns),
             "respecd_version": _version(),
+            "format": LOG_FORMAT,
         },
     }

@@ -22,6 +22,7 @@ cue compares it with) and the resolution.
 from __future__ import annotations
 
 import bisect
+import json
 import time
 from collections import OrderedDict
 from typing import Any
@@ -36,7 +37,9 @@ from respecd.lab.experiment.outcomes import MOTION_IMAGERS, Outcome, detect
 from respecd.lab.experiment.rollout import Piece
 from respecd.messages import Frame, SensorConfig
 from respecd.record import codec
+from respecd.record.codec import LoggedSchema
 from respecd.record.reader import SessionLog, open_log
+from respecd.record.topics import meta_topic, sensor_topic
 
 _IMAGES = ("rgb", "thermal", "depth")
 
@@ -50,13 +53,19 @@ class LogFrames:
         for sensor, modality in session.sensors.items():
             if modality in modalities and modality not in names.values():
                 names[sensor] = modality
-        topics = {f"/sensors/{s}": m for s, m in names.items()}
+        topics = {sensor_topic(s): m for s, m in names.items()}
+        metas = {meta_topic(s): m for s, m in names.items()}  # FrameMeta: just before its frame
         self.times: dict[str, list[float]] = {m: [] for m in topics.values()}
-        self.records: dict[str, list[tuple[str, bytes, int]]] = {m: [] for m in topics.values()}
-        for topic, schema, ns, data in session.messages(list(topics)):
+        self.records: dict[str, list[tuple[LoggedSchema, bytes, int, dict | None]]] = {m: [] for m in topics.values()}
+        stashed: dict[str, tuple[int, dict]] = {}
+        for topic, schema, ns, data in session.messages([*topics, *metas]):
+            if topic in metas:
+                stashed[metas[topic]] = (ns, json.loads(data))
+                continue
             modality = topics[topic]
+            meta = stashed.pop(modality, None)
             self.times[modality].append((ns - session.start_ns) / 1e9)  # seconds since the log began
-            self.records[modality].append((schema, data, ns))
+            self.records[modality].append((schema, data, ns, meta[1] if meta and meta[0] == ns else None))
         if not self.times.get("rgb"):
             raise InputError(f"{session.path}: the log holds no RGB frames (the detector needs them)")
         self._decoded: OrderedDict[tuple[str, int], Frame] = OrderedDict()
@@ -71,8 +80,8 @@ class LogFrames:
         key = (modality, index)
         frame = self._decoded.get(key)
         if frame is None:
-            schema, data, ns = self.records[modality][index]
-            frame = codec.decode_frame(schema, data, modality, ns)  # type: ignore[arg-type]
+            schema, data, ns, meta = self.records[modality][index]
+            frame = codec.decode_frame(schema, data, modality, ns, meta)  # type: ignore[arg-type]
             frame = Frame(frame.modality, self.times[modality][index], index, frame.data, frame.meta)
             self._decoded[key] = frame
             while len(self._decoded) > 48:
