@@ -146,6 +146,23 @@ def test_cut_log_replays_up_to_the_cut_with_a_warning(
     assert 0.5 < entry["replayed_s"] < 3.9
 
 
+def test_damaged_log_replays_with_one_warning_per_damaged_chunk(
+    session_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = bytearray(session_log.read_bytes())
+    for fraction in (0.3, 0.6):
+        data[int(len(data) * fraction)] ^= 0xFF
+    bad = tmp_path / "bad.mcap"
+    bad.write_bytes(data)
+    assert _replay(bad, tmp_path / "bad.json", "--policy", "static") == 0
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.out + captured.err
+    warnings = [json.loads(line) for line in captured.out.splitlines() if '"log.damaged"' in line]
+    assert len(warnings) == 2 and all(w["level"] == "warning" and "-" in w["bytes"] for w in warnings)
+    entry = json.loads((tmp_path / "bad.json").read_text())["policies"]["static"]
+    assert entry["replayed_s"] > 3.5  # the rest of the log was replayed
+
+
 def test_speed_2_replays_on_a_scaled_wall_clock(session_log: Path, tmp_path: Path) -> None:
     entries = {}
     for speed in ("max", "2"):

@@ -1,5 +1,8 @@
 """``respecd log info LOG``: a quick look at a session log — channels, duration, message
-counts, sensors and the profile it ran with — without replaying it."""
+counts, sensors and the profile it ran with — without replaying it.
+
+Every record is read and every chunk's CRC checked, so the counts are what a replay can
+really read; damaged stretches are listed by byte range and the exit status is 1."""
 
 from __future__ import annotations
 
@@ -26,22 +29,35 @@ def main(args: argparse.Namespace) -> int:
         raise InputError("log: expected an action, e.g. `respecd log info LOG`")
     from respecd.record.reader import open_log
 
-    session = open_log(args.log)
+    session = open_log(args.log, verify=True, warn=False)
     description = describe(session)
     text = json.dumps(description, indent=2) if args.json else render(description)
     if args.profile and not args.json:
-        text += "\n" + json.dumps(session.profile_dict(), indent=2)
+        text += "\n" + json.dumps(_profile(session), indent=2)
     try:
         print(text, flush=True)
     except BrokenPipeError:  # `respecd log info LOG | head`: the reader left, that is fine
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-    return 0
+    for damage in session.damage:
+        print(f"respecd: {session.path}: DAMAGED {damage.describe()}", file=sys.stderr)
+    return 1 if session.damage else 0
+
+
+def _profile(session: Any) -> dict[str, Any] | None:
+    """The recorded profile; a damaged one is listed as damage, not raised."""
+    try:
+        return session.profile_dict()
+    except InputError as err:
+        from respecd.record.walk import Damage
+
+        session.note_damage(Damage(0, 0, f"recorded profile metadata: {err}"))
+        return None
 
 
 def describe(session: Any) -> dict[str, Any]:
     """Plain fields of a ``SessionLog`` (what ``--json`` prints)."""
     duration = session.duration_s
-    profile = session.profile_dict()
+    profile = _profile(session)
     meta = session.metadata.get("respecd.session", {})
     channels = [
         {
@@ -76,6 +92,8 @@ def describe(session: Any) -> dict[str, Any]:
         "respecd_version": meta.get("respecd_version"),
         "format": int(meta.get("format", "1")),  # 1: respecd 0.1.0's JSON/base64 messages
         "ground_truth": _has_ground_truth(session),
+        "damaged": bool(session.damage),
+        "damage": [{"start": d.start, "end": d.end, "reason": d.reason} for d in session.damage],
     }
 
 
@@ -102,6 +120,8 @@ def _has_ground_truth(session: Any) -> bool:
 
 def render(d: dict[str, Any]) -> str:
     cut = "  TRUNCATED: no summary; readable up to the last complete chunk" if d["truncated"] else ""
+    if d["damaged"]:
+        cut += f"  DAMAGED: {len(d['damage'])} stretch(es) skipped; counts are what can be read"
     lines = [
         f"file:      {d['file']} ({d['bytes'] / 2**20:.1f} MiB){cut}",
         f"profile:   {d['profile'] or '(not recorded)'}   respecd {d['respecd_version'] or '?'}   format {d['format']}"

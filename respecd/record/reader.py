@@ -3,57 +3,36 @@ and statistics, and stream its messages — also from a file cut short by a powe
 
 A cleanly finished log has a summary at its end and is described from it without reading
 the data. A cut log (no footer) is scanned sequentially up to its last complete record;
-``truncated`` is then True and callers warn once. Bad input raises ``InputError`` naming
-the file and what was expected.
+``truncated`` is then True and callers warn once. Records are read by ``walk``, which checks
+every chunk's CRC: a damaged chunk is skipped, listed in ``damage`` and warned about once,
+with its byte range, and reading goes on. ``open_log(verify=True)`` reads the whole file
+first (``respecd log info``). Bad input raises ``InputError`` naming the file and what was
+expected.
 """
 
 from __future__ import annotations
 
 import json
-import struct
+import mmap
 import threading
-import zlib
 from collections import deque
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import structlog
-from mcap.exceptions import McapError
 from mcap.reader import SeekingReader
-from mcap.records import Channel, Footer, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Message, Metadata, Schema
 
 from respecd.errors import InputError
 from respecd.messages import Frame, Modality
 from respecd.record import codec, legacy
 from respecd.record.codec import LoggedSchema
 from respecd.record.topics import meta_topic, raw_topic, sensor_topic
+from respecd.record.walk import BAD_BYTES, MAGIC, Cut, Damage, check_summary, walk
 
 log = structlog.get_logger(__name__)
-
-MAGIC = b"\x89MCAP0\r\n"
-
-
-class _Truncated(Exception):
-    """The file ended inside a record."""
-
-
-class _StrictFile:
-    """A reader that refuses short reads, so a record cut mid-way is noticed, not half-parsed."""
-
-    def __init__(self, f: IO[bytes]) -> None:
-        self._f = f
-
-    def read(self, n: int = -1) -> bytes:
-        data = self._f.read(n)
-        if n > 0 and 0 < len(data) < n:
-            raise _Truncated
-        return data
-
-
-_CUT = (_Truncated, McapError, struct.error, zlib.error, ValueError, EOFError, MemoryError)
 
 
 @dataclass
@@ -77,7 +56,21 @@ class SessionLog:
     message_count: int = 0
     truncated: bool = False
     size: int = 0
+    damage: list[Damage] = field(default_factory=list)  # unreadable stretches met so far
+    warn: bool = True  # log a warning per damaged stretch (log info prints them itself)
+    channel_ids: dict[int, tuple[str, LoggedSchema]] = field(default_factory=dict)  # from a CRC-checked summary
     _demux: Demux | None = field(default=None, repr=False, compare=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False, compare=False)
+
+    def note_damage(self, damage: Damage) -> None:
+        """Record a damaged stretch; warn once per stretch however many passes meet it."""
+        with self._lock:
+            if damage in self.damage:
+                return
+            self.damage.append(damage)
+        if self.warn:
+            log.warning("log.damaged", path=str(self.path), bytes=f"{damage.start}-{damage.end}",
+                        size=damage.end - damage.start, reason=damage.reason, action="skipped")
 
     def shared_demux(self) -> Demux:
         """The one-pass reader all replay drivers of this log share (created on first use)."""
@@ -101,13 +94,22 @@ class SessionLog:
     def profile_dict(self) -> dict[str, Any] | None:
         """The profile the session ran with, as a plain dict (None when not recorded)."""
         entry = self.metadata.get("respecd.profile")
-        return json.loads(entry["json"]) if entry and "json" in entry else None
+        if not entry or "json" not in entry:
+            return None
+        try:
+            profile = json.loads(entry["json"])
+        except ValueError as err:
+            raise InputError(f"{self.path}: the recorded profile is damaged ({err}); "
+                             "pass the profile the session ran with: --config FILE") from err
+        if not isinstance(profile, dict):
+            raise InputError(f"{self.path}: the recorded profile is damaged (not a mapping); pass --config FILE")
+        return profile
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[tuple[str, LoggedSchema, int, bytes]]:
-        """(topic, schema, log time ns, payload) in file order, up to a cut if any."""
+        """(topic, schema, log time ns, payload) in file order, up to a cut if any; damaged
+        chunks are skipped (``note_damage``)."""
         wanted = set(topics) if topics is not None else None
-        with open(self.path, "rb") as f:
-            yield from _iter_messages(f, wanted)
+        yield from _iter_messages(self.path, wanted, self.note_damage, self.channel_ids)
 
     def frames(self, sensor: str, demux: Demux | None = None) -> Iterator[Frame]:
         """The sensor's logged frames in order; radar frames get their raw UART bytes back.
@@ -212,34 +214,37 @@ class Demux:
             yield item
 
 
-_NO_SCHEMA = LoggedSchema("")
-
-
-def _iter_messages(f: IO[bytes], wanted: set[str] | None) -> Iterator[tuple[str, LoggedSchema, int, bytes]]:
+def _iter_messages(
+    path: Path, wanted: set[str] | None, on_damage: Callable[[Damage], None],
+    known: dict[int, tuple[str, LoggedSchema]],
+) -> Iterator[tuple[str, LoggedSchema, int, bytes]]:
+    """Messages of known channels. Channel and schema records outside chunks carry no CRC:
+    those of an intact summary (``known``) win over the data section's, and a message whose
+    channel was lost to damage is skipped (the damage is reported)."""
     schemas: dict[int, Schema] = {}
-    topics: dict[int, tuple[str, LoggedSchema]] = {}  # channel id -> (topic, schema)
-    records = StreamReader(_StrictFile(f), record_size_limit=1 << 30).records  # type: ignore[arg-type]
-    while True:
-        try:
-            record = next(records)
-        except StopIteration:
-            return
-        except _CUT:
-            return  # a cut: everything before it has been served
-        if isinstance(record, Schema):
+    topics: dict[int, tuple[str, LoggedSchema]] = dict(known)  # channel id -> (topic, schema)
+    for record in walk(path):
+        if isinstance(record, Message):
+            channel = topics.get(record.channel_id)
+            if channel is not None and (wanted is None or channel[0] in wanted):
+                yield channel[0], channel[1], record.log_time, record.data
+        elif isinstance(record, Schema):
             schemas[record.id] = record
         elif isinstance(record, Channel):
-            schema = schemas.get(record.schema_id)
-            topics[record.id] = (record.topic, LoggedSchema(schema.name if schema else "", record.message_encoding,
-                                                            schema.data if schema else b""))
-        elif isinstance(record, Message):
-            topic, schema = topics.get(record.channel_id, ("", _NO_SCHEMA))
-            if wanted is None or topic in wanted:
-                yield topic, schema, record.log_time, record.data
+            topics.setdefault(record.id, (record.topic, _logged_schema(record, schemas.get(record.schema_id))))
+        elif isinstance(record, Damage):
+            on_damage(record)
 
 
-def open_log(path: str | Path) -> SessionLog:
-    """Validate and describe a log; raise InputError for missing, empty or non-MCAP files."""
+def _logged_schema(channel: Any, schema: Any) -> LoggedSchema:
+    return LoggedSchema(schema.name if schema else "", channel.message_encoding, schema.data if schema else b"")
+
+
+def open_log(path: str | Path, verify: bool = False, warn: bool = True) -> SessionLog:
+    """Validate and describe a log; raise InputError for missing, empty or non-MCAP files.
+
+    ``verify``: read every record and check every CRC now (``damage`` is then complete and
+    the counts are what can really be read), instead of trusting an intact summary."""
     p = Path(path)
     if not p.exists():
         raise InputError(f"{p}: no such file (expected an MCAP session log written by respecd --record)")
@@ -252,9 +257,10 @@ def open_log(path: str | Path) -> SessionLog:
         head = f.read(len(MAGIC))
     if head != MAGIC:
         raise InputError(f"{p}: not an MCAP file (byte 0: {head[:8]!r}, expected the MCAP magic {MAGIC!r})")
-    session = SessionLog(path=p, size=size)
-    if not _from_summary(session):
-        _scan(session)
+    session = SessionLog(path=p, size=size, warn=warn)
+    summarized = _from_summary(session)  # also checks the summary's CRC
+    if verify or not summarized:
+        _scan(session, verify, into_summary=not session.damage)  # a damaged summary was reported already
     if session.message_count == 0 and not session.channels:
         cut = " (the file was cut before its first complete chunk)" if session.truncated else ""
         raise InputError(f"{p}: MCAP log holds no messages{cut}")
@@ -262,15 +268,21 @@ def open_log(path: str | Path) -> SessionLog:
 
 
 def _from_summary(session: SessionLog) -> bool:
-    """Fill ``session`` from the summary section of a finished log; False if there is none."""
+    """Fill ``session`` from the summary section of a finished log; False if there is none
+    or its CRC shows it damaged (the data are scanned instead)."""
     try:
+        with open(session.path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+            intact, start, end = check_summary(mm)
+        if intact is False:
+            session.note_damage(Damage(start, end, "summary section CRC mismatch: counts are read from the data"))
+            return False
         with open(session.path, "rb") as f:
             reader = SeekingReader(f)
             summary = reader.get_summary()
             if summary is None or summary.statistics is None:
                 return False
             session.metadata = {m.name: dict(m.metadata) for m in reader.iter_metadata()}
-    except (*_CUT, OSError):  # too short for a footer, or a cut file: scan it instead
+    except (*BAD_BYTES, OSError):  # too short for a footer, or a cut file: scan it instead
         return False
     stats = summary.statistics
     for cid, ch in summary.channels.items():
@@ -279,37 +291,36 @@ def _from_summary(session: SessionLog) -> bool:
             ch.topic, schema.name if schema else "", dict(ch.metadata), stats.channel_message_counts.get(cid, 0),
             ch.message_encoding,
         )
+        if intact:  # CRC-checked: trusted over the data section's copies
+            session.channel_ids[cid] = (ch.topic, _logged_schema(ch, schema))
     session.start_ns, session.end_ns = stats.message_start_time, stats.message_end_time
     session.message_count = stats.message_count
     return True
 
 
-def _scan(session: SessionLog) -> None:
-    """Read a log without a usable summary record by record, up to its cut."""
+def _scan(session: SessionLog, verify: bool = False, into_summary: bool = True) -> None:
+    """Read a log record by record, up to its cut: what can really be read. Past the data
+    section too (``into_summary``), so that a file cut inside its summary counts as cut."""
     schemas: dict[int, str] = {}
     by_id: dict[int, ChannelInfo] = {}
-    with open(session.path, "rb") as f:
-        records = StreamReader(_StrictFile(f), record_size_limit=1 << 30).records  # type: ignore[arg-type]
-        while True:
-            try:
-                record = next(records)
-            except StopIteration:
-                break
-            except _CUT:
-                session.truncated = True
-                break
-            if isinstance(record, Schema):
-                schemas[record.id] = record.name
-            elif isinstance(record, Channel) and record.id not in by_id:
-                by_id[record.id] = ChannelInfo(record.topic, schemas.get(record.schema_id, ""), dict(record.metadata),
-                                               encoding=record.message_encoding)
-                session.channels[record.topic] = by_id[record.id]
-            elif isinstance(record, Metadata):
-                session.metadata[record.name] = dict(record.metadata)
-            elif isinstance(record, Message) and record.channel_id in by_id:
+    session.channels.clear()  # counted again from what is really there
+    session.message_count = session.start_ns = session.end_ns = 0
+    for record in walk(session.path, stop_at_data_end=not into_summary, verify=verify):
+        if isinstance(record, Message):
+            if record.channel_id in by_id:
                 _count(session, by_id[record.channel_id], record.log_time)
-            elif isinstance(record, Footer):
-                break
+        elif isinstance(record, Schema):
+            schemas[record.id] = record.name
+        elif isinstance(record, Channel) and record.id not in by_id:
+            by_id[record.id] = ChannelInfo(record.topic, schemas.get(record.schema_id, ""), dict(record.metadata),
+                                           encoding=record.message_encoding)
+            session.channels[record.topic] = by_id[record.id]
+        elif isinstance(record, Metadata):
+            session.metadata[record.name] = dict(record.metadata)
+        elif isinstance(record, Damage):
+            session.note_damage(record)
+        elif isinstance(record, Cut):
+            session.truncated = True
 
 
 def _count(session: SessionLog, channel: ChannelInfo, log_time: int) -> None:

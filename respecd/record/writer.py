@@ -64,6 +64,7 @@ class SegmentWriter:
             self._file,
             chunk_size=self.config.chunk_size_kib * 1024,
             compression=_COMPRESSION[self.config.compression],
+            enable_data_crcs=True,  # DataEnd's CRC covers what chunk CRCs do not: header, metadata, indexes
         )
         self._writer.start(profile=MCAP_PROFILE, library=LIBRARY)
         for name, data in self.metadata.items():
