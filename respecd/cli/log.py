@@ -1,5 +1,6 @@
 """``respecd log info LOG``: a quick look at a session log — channels, duration, message
-counts, sensors and the profile it ran with — without replaying it.
+counts, sensors and the profile it ran with — without replaying it. ``respecd log export
+LOG --to rosbag2 OUT``: the session as a ROS 2 bag.
 
 Every record is read and every chunk's CRC checked, so the counts are what a replay can
 really read; damaged stretches are listed by byte range and the exit status is 1."""
@@ -22,12 +23,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     info.add_argument("log", metavar="LOG", help="an MCAP session log (respecd --record)")
     info.add_argument("--json", action="store_true", help="print the description as JSON")
     info.add_argument("--profile", action="store_true", help="also print the recorded profile (JSON)")
+    export = sub.add_parser("export", help="convert a session log: --to rosbag2 OUT_DIR (MCAP storage, cdr)")
+    export.add_argument("log", metavar="LOG", help="an MCAP session log (respecd --record)")
+    export.add_argument("--to", choices=("rosbag2",), required=True, help="output format")
+    export.add_argument("out", metavar="OUT_DIR", help="the bag directory to create (must not exist)")
 
 
 def main(args: argparse.Namespace) -> int:
-    if getattr(args, "log_command", None) != "info":
-        raise InputError("log: expected an action, e.g. `respecd log info LOG`")
+    command = getattr(args, "log_command", None)
+    if command not in ("info", "export"):
+        raise InputError("log: expected an action: `respecd log info LOG` or `respecd log export LOG --to rosbag2 DIR`")
     from respecd.record.reader import open_log
+
+    if command == "export":
+        return export(args)
 
     session = open_log(args.log, verify=True, warn=False)
     description = describe(session)
@@ -52,6 +61,18 @@ def _profile(session: Any) -> dict[str, Any] | None:
 
         session.note_damage(Damage(0, 0, f"recorded profile metadata: {err}"))
         return None
+
+
+def export(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from respecd.record.reader import open_log
+    from respecd.record.rosbag_out import export_rosbag2
+
+    session = open_log(args.log)
+    counts = export_rosbag2(session, Path(args.out))
+    print(f"{args.out}: rosbag2 (mcap, cdr), {sum(counts.values())} messages on {len(counts)} topics")
+    return 0
 
 
 def describe(session: Any) -> dict[str, Any]:

@@ -1,0 +1,95 @@
+"""``respecd log export LOG --to rosbag2 OUT``: the bag reads back with rosbags, topic by
+topic with the log's message counts, in standard ROS 2 messages with the exact payloads."""
+
+from __future__ import annotations
+
+import asyncio
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+from rosbags.highlevel import AnyReader
+
+from respecd.cli import main
+from respecd.clock import ManualClock
+from respecd.messages import Bundle, Detection, Frame, Health, Percept, SyncStats
+from respecd.record.config import RecordingConfig
+from respecd.record.reader import open_log
+from respecd.record.recorder import Recorder
+from respecd.record.ros_types import typestore
+
+INTRINSICS = {"fx": 457.0, "fy": 457.0, "cx": 320.0, "cy": 180.0, "width": 640, "height": 360}
+PROFILE = {"name": "bag-rig", "sensors": [
+    {"name": "cam", "modality": "rgb", "calibration": {"intrinsics": INTRINSICS}},
+    {"name": "radar", "modality": "radar"}]}
+LEGACY = Path(__file__).parent / "data" / "legacy-v1.mcap"
+
+
+async def _record(path: Path, n: int = 30) -> list[dict[str, Frame]]:
+    recorder = Recorder(RecordingConfig(enabled=True, path=str(path)), PROFILE, clock := ManualClock())
+    recorder.start()
+    rng, sent = np.random.default_rng(3), []
+    for i in range(n):
+        clock.set(i / 30)
+        rgb = np.full((360, 640, 3), 90, np.uint8)
+        frames = {"cam": Frame("rgb", i / 30, i, rgb),
+                  "ir": Frame("thermal", i / 30, i, rng.integers(29000, 31000, (120, 160), dtype=np.uint16)),
+                  "radar": Frame("radar", i / 30, i, rng.normal(size=(4, 5)).astype(np.float32)),
+                  "imu": Frame("imu", i / 30, i, np.arange(6, dtype=np.float32))}
+        for name, frame in frames.items():
+            recorder.on_frame(name, frame)
+        if i % 10 == 0:
+            bundle = Bundle(i / 30, {"rgb": frames["cam"]}, SyncStats(30.0, 0.1, 0.0, Health.GOOD), i)
+            recorder.on_percept(Percept(i / 30, (Detection((10, 20, 110, 220), 0.75),), 0.7, None, 0.02, bundle))
+        sent.append(frames)
+        await asyncio.sleep(0.002)
+    await recorder.close()
+    return sent
+
+
+async def test_exported_bag_has_the_logs_topics_counts_and_payloads(tmp_path: Path) -> None:
+    sent = await _record(tmp_path / "s.mcap")
+    bag = tmp_path / "bag"
+    assert main(["log", "export", str(tmp_path / "s.mcap"), "--to", "rosbag2", str(bag)]) == 0
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["storage_identifier"] == "mcap" and meta["version"] == 8
+    log = open_log(tmp_path / "s.mcap")
+    store = typestore()
+    with AnyReader([bag], default_typestore=store) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+        types = {c.topic: c.msgtype for c in reader.connections}
+        assert counts == {topic: c.count for topic, c in log.channels.items()}
+        assert types["/sensors/cam"] == "sensor_msgs/msg/CompressedImage"
+        assert types["/sensors/ir"] == "sensor_msgs/msg/Image"
+        assert types["/sensors/ir/colormap"] == "sensor_msgs/msg/CompressedImage"
+        assert types["/sensors/radar"] == "sensor_msgs/msg/PointCloud2"
+        assert types["/sensors/imu"] == "sensor_msgs/msg/Imu"
+        assert types["/sensors/cam/calibration"] == "sensor_msgs/msg/CameraInfo"
+        assert types["/tf"] == "tf2_msgs/msg/TFMessage"
+        assert types["/respecd/detections"] == "vision_msgs/msg/Detection2DArray"
+        assert types["/respecd/percept"] == "std_msgs/msg/String"
+        seen: dict[str, list] = {}
+        for connection, _, raw in reader.messages():
+            seen.setdefault(connection.topic, []).append(reader.deserialize(raw, connection.msgtype))
+    ir = seen["/sensors/ir"][5]
+    assert (ir.encoding, ir.width, ir.height) == ("mono16", 160, 120)
+    np.testing.assert_array_equal(ir.data.view("<u2").reshape(120, 160), sent[5]["ir"].data)
+    cloud = seen["/sensors/radar"][7]
+    assert [f.name for f in cloud.fields] == ["x", "y", "z", "v", "snr"] and cloud.point_step == 20
+    np.testing.assert_array_equal(cloud.data.view("<f4").reshape(-1, 5), sent[7]["radar"].data)
+    image = cv2.imdecode(seen["/sensors/cam"][0].data, cv2.IMREAD_COLOR)
+    assert image.shape == (360, 640, 3)
+    detection = seen["/respecd/detections"][1].detections[0]
+    assert detection.results[0].hypothesis.class_id == "person" and detection.results[0].hypothesis.score == 0.75
+    assert (detection.bbox.center.position.x, detection.bbox.size_x, detection.bbox.size_y) == (60.0, 100.0, 200.0)
+    assert seen["/sensors/imu"][0].linear_acceleration.z == 2.0
+    assert list(seen["/sensors/cam/calibration"][0].k)[:3] == [457.0, 0.0, 320.0]
+
+
+def test_export_refuses_an_existing_dir_and_first_format_logs(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    assert main(["log", "export", str(LEGACY), "--to", "rosbag2", str(tmp_path)]) == 2
+    assert "already exists" in capsys.readouterr().err
+    assert main(["log", "export", str(LEGACY), "--to", "rosbag2", str(tmp_path / "bag")]) == 2
+    assert "format 1" in capsys.readouterr().err
