@@ -20,7 +20,7 @@ from respecd.errors import InputError
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="log_command", metavar="ACTION")
     info = sub.add_parser("info", help="channels, duration, message counts, sensors, profile")
-    info.add_argument("log", metavar="LOG", help="an MCAP session log (respecd --record)")
+    info.add_argument("log", metavar="LOG", help="an MCAP session log (respecd --record) or a ROS bag")
     info.add_argument("--json", action="store_true", help="print the description as JSON")
     info.add_argument("--profile", action="store_true", help="also print the recorded profile (JSON)")
     export = sub.add_parser("export", help="convert a session log: --to rosbag2 OUT_DIR (MCAP storage, cdr)")
@@ -34,22 +34,30 @@ def main(args: argparse.Namespace) -> int:
     if command not in ("info", "export"):
         raise InputError("log: expected an action: `respecd log info LOG` or `respecd log export LOG --to rosbag2 DIR`")
     from respecd.record.reader import open_log
+    from respecd.record.rosbag_in import is_bag
 
     if command == "export":
         return export(args)
-
+    if is_bag(args.log):
+        description = describe_bag(args.log)
+        _print(json.dumps(description, indent=2) if args.json else render_bag(description))
+        return 0
     session = open_log(args.log, verify=True, warn=False)
     description = describe(session)
     text = json.dumps(description, indent=2) if args.json else render(description)
     if args.profile and not args.json:
         text += "\n" + json.dumps(_profile(session), indent=2)
+    _print(text)
+    for damage in session.damage:
+        print(f"respecd: {session.path}: DAMAGED {damage.describe()}", file=sys.stderr)
+    return 1 if session.damage else 0
+
+
+def _print(text: str) -> None:
     try:
         print(text, flush=True)
     except BrokenPipeError:  # `respecd log info LOG | head`: the reader left, that is fine
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
-    for damage in session.damage:
-        print(f"respecd: {session.path}: DAMAGED {damage.describe()}", file=sys.stderr)
-    return 1 if session.damage else 0
 
 
 def _profile(session: Any) -> dict[str, Any] | None:
@@ -61,6 +69,40 @@ def _profile(session: Any) -> dict[str, Any] | None:
 
         session.note_damage(Damage(0, 0, f"recorded profile metadata: {err}"))
         return None
+
+
+def describe_bag(path: str) -> dict[str, Any]:
+    """A robot's bag: its topics, and the sensors ``--replay`` would take from them."""
+    from respecd.record.rosbag_in import open_bag
+
+    bag = open_bag(path, None)
+    duration = bag.duration_s
+    return {
+        "file": str(bag.path),
+        "bytes": bag.size,
+        "kind": "ROS 1 bag" if bag.path.suffix == ".bag" else "rosbag2",
+        "start_utc": _utc(bag.start_ns),
+        "duration_s": round(duration, 3),
+        "messages": bag.message_count,
+        "topics": [{"topic": c.topic, "type": c.schema, "messages": c.count, "rate_hz": _rate(c.count, duration)}
+                   for c in sorted(bag.channels.values(), key=lambda c: c.topic)],
+        "guessed_topics": bag.topic_map,
+    }
+
+
+def render_bag(d: dict[str, Any]) -> str:
+    guess = ",".join(f"{k}={v}" for k, v in d["guessed_topics"].items())
+    lines = [
+        f"file:      {d['file']} ({d['bytes'] / 2**20:.1f} MiB)   {d['kind']}",
+        f"start:     {d['start_utc'] or '-'}",
+        f"duration:  {d['duration_s']:.2f} s",
+        f"messages:  {d['messages']} in {len(d['topics'])} topics",
+        f"replay:    respecd --replay {d['file']} --topics {guess}" if guess else "replay:    no sensor topics",
+        "topics:",
+    ]
+    for t in d["topics"]:
+        lines.append(f"  {t['topic']:<30} {t['type']:<34} {t['messages']:>7} msgs {t['rate_hz'] or 0:>6.1f} Hz")
+    return "\n".join(lines)
 
 
 def export(args: argparse.Namespace) -> int:

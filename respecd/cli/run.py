@@ -41,7 +41,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--state-dir", metavar="DIR", help="Q-table and state (default: $STATE_DIRECTORY, else $XDG_STATE_HOME/respecd)"
     )
     parser.add_argument("--record", metavar="PATH", help="record the session to this MCAP file")
-    parser.add_argument("--replay", metavar="LOG", help="replay a recorded MCAP session through the pipeline")
+    parser.add_argument("--replay", metavar="LOG",
+                        help="replay a recorded MCAP session, or a ROS bag (rosbag2 directory or ROS 1 .bag), "
+                             "through the pipeline")
+    parser.add_argument("--topics", metavar="MAP",
+                        help="replay of a ROS bag: which topic is which sensor, e.g. "
+                             "rgb=/camera/image_raw,thermal=/thermal/image,radar=/radar/points,depth=...,imu=... "
+                             "(default: guessed from message types, and the guess printed)")
     parser.add_argument(
         "--speed",
         default="1",

@@ -75,7 +75,8 @@ class SessionLog:
     def shared_demux(self) -> Demux:
         """The one-pass reader all replay drivers of this log share (created on first use)."""
         if self._demux is None:
-            self._demux = Demux(self)
+            owner = {topic(n): n for n in self.sensors for topic in (sensor_topic, raw_topic, meta_topic)}
+            self._demux = Demux(self.messages(list(owner)), owner)
         return self._demux
 
     @property
@@ -144,6 +145,9 @@ class SessionLog:
                 percepts.append(json.loads(data))
         return truth, percepts
 
+    def frame_count(self, sensor: str) -> int:
+        return self.channels[sensor_topic(sensor)].count
+
     def json_messages(self, topic: str) -> Iterator[dict[str, Any]]:
         for _, _, _, data in self.messages([topic]):
             yield json.loads(data)
@@ -186,15 +190,16 @@ class Demux:
 
     MAX_PARKED = 4096
 
-    def __init__(self, session: SessionLog) -> None:
-        self._owner = {topic(n): n for n in session.sensors for topic in (sensor_topic, raw_topic, meta_topic)}
-        self._source = session.messages(list(self._owner))
-        self._parked: dict[str, deque[tuple[str, LoggedSchema, int, bytes]]] = {n: deque() for n in session.sensors}
+    def __init__(self, source: Iterator[tuple[str, Any, int, Any]], owner: dict[str, str]) -> None:
+        """``source``: (topic, schema, log ns, data) in log order; ``owner``: topic -> sensor."""
+        self._owner = owner
+        self._source = source
+        self._parked: dict[str, deque[tuple[str, Any, int, Any]]] = {n: deque() for n in set(owner.values())}
         self._lock = threading.Lock()
         self._done = False
         self.dropped = 0
 
-    def next_for(self, sensor: str) -> tuple[str, LoggedSchema, int, bytes] | None:
+    def next_for(self, sensor: str) -> tuple[str, Any, int, Any] | None:
         with self._lock:
             queue = self._parked[sensor]
             while not queue and not self._done:
@@ -209,7 +214,7 @@ class Demux:
                 owner.append(item)
             return queue.popleft() if queue else None
 
-    def messages_for(self, sensor: str) -> Iterator[tuple[str, LoggedSchema, int, bytes]]:
+    def messages_for(self, sensor: str) -> Iterator[tuple[str, Any, int, Any]]:
         while (item := self.next_for(sensor)) is not None:
             yield item
 

@@ -32,7 +32,7 @@ def first_frames(session: SessionLog) -> dict[str, Frame]:
 
 def logged_rate(session: SessionLog, sensor: str) -> float:
     """The sensor's recorded frame rate, clamped to 1..30 Hz and rounded up to 0.1 Hz."""
-    count = session.channels[f"/sensors/{sensor}"].count
+    count = session.frame_count(sensor)
     duration = session.duration_s
     rate = (count - 1) / duration if count > 1 and duration > 0 else 30.0
     return min(30.0, max(1.0, math.ceil(rate * 10 - 1e-6) / 10))

@@ -42,7 +42,8 @@ def run_replay(args: argparse.Namespace, signals: Any = None) -> int:
     """Entry point from ``respecd --replay``; InputError/ConfigError become exit 2."""
     report = replay(args.replay, config=args.config, policy=args.policy, speed=str(getattr(args, "speed", "max")),
                     seed=args.seed or 0, duration=args.duration, report=args.report, state_dir=args.state_dir,
-                    save_table=getattr(args, "save_table", None), signals=signals)
+                    save_table=getattr(args, "save_table", None), signals=signals,
+                    topics=getattr(args, "topics", None))
     print(report_out.table(report))
     return 0
 
@@ -50,14 +51,15 @@ def run_replay(args: argparse.Namespace, signals: Any = None) -> int:
 def replay(log_path: str | Path, *, config: str | Path | None = None, policy: str | None = None, speed: str = "max",
            seed: int = 0, duration: float | None = None, report: str | Path | None = None,
            state_dir: str | Path | None = None, save_table: str | Path | None = None,
-           signals: Any = None) -> dict[str, Any]:
+           signals: Any = None, topics: str | None = None) -> dict[str, Any]:
     """Replay ``log_path`` under ``policy``; the report (``{"log", "policies"}``), also merged
     into the JSON at ``report`` (with a PNG timeline) when given. ``config``: a profile file
     to replay with instead of the one recorded in the log. ``signals``: a ``StopSignals``
-    whose SIGTERM/SIGINT end the replay early (the report then covers what was replayed)."""
+    whose SIGTERM/SIGINT end the replay early (the report then covers what was replayed).
+    ``topics``: for a ROS bag, which topic is which sensor (``rgb=/cam/image_raw,imu=...``)."""
     if duration is not None and not duration > 0:
         raise InputError(f"--duration: expected a positive number of seconds, got {duration}")
-    session = open_log(log_path)
+    session = open_source(log_path, topics)
     if session.truncated:
         print(f"respecd: warning: {session.path} was cut short (no summary); replaying its "
               f"{session.duration_s:.2f} s up to the last complete chunk", file=sys.stderr)
@@ -75,11 +77,37 @@ def replay(log_path: str | Path, *, config: str | Path | None = None, policy: st
     return _emit(report, session, entry)
 
 
-def _base_profile(config: str | Path | None, session: SessionLog) -> dict[str, Any]:
-    """``config`` when given explicitly, else the profile recorded in the log."""
+def open_source(path: str | Path, topics: str | None) -> Any:
+    """A respecd log, or a robot's ROS bag read through the topic map (guessed, and the
+    guess printed, when ``topics`` is absent)."""
+    from respecd.record.rosbag_in import is_bag, open_bag, parse_topics
+
+    if not is_bag(path):
+        if topics:
+            raise InputError(f"--topics: applies to ROS bags only; {path} is a respecd log (its sensors are named)")
+        return open_log(path)
+    bag = open_bag(path, parse_topics(topics))
+    if not bag.topic_map:
+        raise InputError(f"{path}: no sensor_msgs Image/CompressedImage/PointCloud2/Imu topic to replay "
+                         f"(topics: {', '.join(f'{t} [{c.schema}]' for t, c in sorted(bag.channels.items()))})")
+    if not topics:
+        guess = ",".join(f"{k}={v}" for k, v in bag.topic_map.items())
+        print(f"respecd: --topics not given; guessed from message types: --topics {guess}", file=sys.stderr)
+    return bag
+
+
+def _base_profile(config: str | Path | None, session: Any) -> dict[str, Any]:
+    """``config`` when given explicitly, else the profile recorded in the log (for a ROS bag:
+    the default profile's perception and controller with one sensor per mapped topic)."""
     from respecd.config import DEFAULT_PROFILE, load_profile
 
-    if config and str(config) != DEFAULT_PROFILE:
+    explicit = bool(config) and str(config) != DEFAULT_PROFILE
+    if getattr(session, "topic_map", None) is not None:
+        base = dict(load_profile(config if explicit else DEFAULT_PROFILE).model_dump(mode="json"))
+        named = {s["name"]: s for s in base.get("sensors", [])} if explicit else {}
+        base["sensors"] = [named.get(name, {"name": name, "modality": name}) for name in session.topic_map]
+        return base
+    if explicit:
         return dict(load_profile(config).model_dump(mode="json"))
     recorded = session.profile_dict()
     if recorded is None:

@@ -1,0 +1,287 @@
+"""A robot's bag as a replay source: rosbag2 (MCAP or sqlite3 storage) or ROS 1, read with
+``rosbags``, presenting the same interface as a respecd log (``SessionLog``), so ``--replay``
+feeds it through the same pipeline with the same counterfactual replay drivers.
+
+Which topic is which sensor comes from a topic map (``--topics rgb=/cam/image_raw,imu=...``);
+without one it is guessed from message types and topic names (``guess_topics``). Sensors are
+named after the map's keys. Frames are converted to respecd's conventions:
+
+* ``sensor_msgs/Image`` / ``CompressedImage``: colour to BGR uint8 (mono RGB cameras are
+  replicated to 3 channels); 16-bit kept exact; float depth (REP 118, metres) to uint16 mm;
+  ``compressedDepth`` PNGs (image_transport's 12-byte header) decoded;
+* ``sensor_msgs/PointCloud2``: x, y, z (REP 103: x forward, y left, z up) to TI's radar frame
+  (x right, y forward, z up); radial velocity from a ``v``/``velocity``/``doppler`` field and
+  SNR from ``snr``/``intensity`` when present, else 0;
+* ``sensor_msgs/Imu``: linear acceleration and angular velocity.
+
+Times are bag receive times, in seconds from the start of the bag.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from respecd.errors import InputError
+from respecd.messages import Frame, Modality
+from respecd.record.reader import ChannelInfo, Demux
+
+MODALITIES: tuple[Modality, ...] = ("rgb", "thermal", "radar", "depth", "imu")
+IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
+POINTS_TYPE = "sensor_msgs/msg/PointCloud2"
+IMU_TYPE = "sensor_msgs/msg/Imu"
+_VELOCITY = ("v", "velocity", "doppler", "radial_velocity")
+_SNR = ("snr", "intensity", "power")
+_PC2_DTYPES = {1: "i1", 2: "u1", 3: "<i2", 4: "<u2", 5: "<i4", 6: "<u4", 7: "<f4", 8: "<f8"}
+
+
+def is_bag(path: str | Path) -> bool:
+    """A rosbag2 directory (or one of its storage files) or a ROS 1 ``.bag``."""
+    p = Path(path)
+    if p.is_dir():
+        return (p / "metadata.yaml").is_file()
+    if p.suffix == ".bag":
+        return True
+    return p.suffix in (".mcap", ".db3") and (p.parent / "metadata.yaml").is_file()
+
+
+def parse_topics(text: str | None, modalities: Iterable[str] = MODALITIES) -> dict[str, str]:
+    """``rgb=/cam/image_raw,imu=/imu/data`` -> {"rgb": "/cam/image_raw", ...} (InputError if malformed)."""
+    if not text:
+        return {}
+    mapping: dict[str, str] = {}
+    for item in text.split(","):
+        name, sep, topic = item.strip().partition("=")
+        if not sep or not name or not topic.startswith("/"):
+            raise InputError(f"--topics: {item.strip()!r}: expected NAME=/topic, e.g. rgb=/camera/image_raw")
+        if name not in modalities:
+            raise InputError(f"--topics: {name!r}: expected one of {', '.join(modalities)}")
+        mapping[name] = topic
+    return mapping
+
+
+@dataclass
+class BagLog:
+    """A foreign bag, described like a ``SessionLog`` (no profile, no percepts, no truth)."""
+
+    path: Path
+    topic_map: dict[str, str]  # sensor name (= modality) -> topic
+    channels: dict[str, ChannelInfo] = field(default_factory=dict)  # every topic in the bag
+    start_ns: int = 0
+    end_ns: int = 0
+    message_count: int = 0
+    size: int = 0
+    truncated: bool = False
+    metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    _demux: Demux | None = field(default=None, repr=False)
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+
+    @property
+    def duration_s(self) -> float:
+        return max(0.0, (self.end_ns - self.start_ns) / 1e9)
+
+    @property
+    def sensors(self) -> dict[str, Modality]:
+        return {name: name for name in self.topic_map}  # type: ignore[misc]
+
+    def profile_dict(self) -> None:
+        return None  # a robot's bag carries no respecd profile
+
+    def frame_count(self, sensor: str) -> int:
+        return self.channels[self.topic_map[sensor]].count
+
+    def side_data(self, rgb_sensor: str | None) -> tuple[list[tuple[float, Any]], list[dict[str, Any]]]:
+        return [], []  # no ground truth, no recorded percepts
+
+    def json_messages(self, topic: str) -> Iterator[dict[str, Any]]:
+        return iter(())
+
+    def messages(self, topics: Iterable[str]) -> Iterator[tuple[str, Any, int, bytes]]:
+        """(topic, connection, receive time ns, raw cdr/ros1 bytes) in bag order."""
+        from rosbags.highlevel import AnyReader
+
+        wanted = set(topics)
+        with AnyReader([_bag_root(self.path)]) as reader:
+            connections = [c for c in reader.connections if c.topic in wanted]
+            for connection, ns, raw in reader.messages(connections=connections):
+                yield connection.topic, (reader, connection), ns, raw
+
+    def shared_demux(self) -> Demux:
+        if self._demux is None:
+            owner = {topic: name for name, topic in self.topic_map.items()}
+            self._demux = Demux(self.messages(owner), owner)
+        return self._demux
+
+    def frames(self, sensor: str, demux: Demux | None = None) -> Iterator[Frame]:
+        topic = self.topic_map[sensor]
+        messages = demux.messages_for(sensor) if demux is not None else self.messages([topic])
+        for seq, (_, (reader, connection), ns, raw) in enumerate(messages):
+            msg = reader.deserialize(raw, connection.msgtype)
+            data = to_array(msg, connection.msgtype, sensor)  # type: ignore[arg-type]
+            yield Frame(modality=sensor, t=(ns - self.start_ns) / 1e9, seq=seq, data=data,  # type: ignore[arg-type]
+                        meta={"topic": topic, "frame_id": msg.header.frame_id})
+
+
+def _bag_root(path: Path) -> Path:
+    return path.parent if path.suffix in (".mcap", ".db3") else path
+
+
+def open_bag(path: str | Path, topics: dict[str, str] | None) -> BagLog:
+    """Describe a bag; check the topic map against it (InputError naming what is wrong)."""
+    from rosbags.highlevel import AnyReader
+
+    p = Path(path)
+    if not p.exists():
+        raise InputError(f"{p}: no such file or directory (expected a rosbag2 directory or a ROS 1 .bag)")
+    bag = BagLog(path=p, topic_map={})
+    try:
+        with AnyReader([_bag_root(p)]) as reader:
+            for c in reader.connections:
+                info = bag.channels.setdefault(c.topic, ChannelInfo(c.topic, c.msgtype, {}, 0, c.msgtype))
+                info.count += c.msgcount
+            bag.start_ns, bag.end_ns = reader.start_time, reader.end_time
+            bag.message_count = reader.message_count
+            guessed = guess_topics(bag.channels)
+    except InputError:
+        raise
+    except Exception as err:  # rosbags' own errors: unreadable metadata, unknown storage, bad chunk
+        raise InputError(f"{p}: cannot read as a ROS bag: {err}") from err
+    bag.size = sum(f.stat().st_size for f in ([p] if p.is_file() else p.iterdir()) if f.is_file())
+    bag.topic_map = dict(topics) if topics else guessed
+    _check_topics(bag)
+    return bag
+
+
+def _check_topics(bag: BagLog) -> None:
+    kinds = {"imu": (IMU_TYPE,), "radar": (POINTS_TYPE,)}
+    for name, topic in bag.topic_map.items():
+        info = bag.channels.get(topic)
+        if info is None:
+            raise InputError(f"{bag.path}: --topics {name}={topic}: no such topic (the bag has: "
+                             f"{', '.join(sorted(bag.channels)) or 'none'})")
+        allowed = kinds.get(name, IMAGE_TYPES)
+        if info.schema not in allowed:
+            raise InputError(f"{bag.path}: --topics {name}={topic}: {info.schema} cannot be a {name} sensor "
+                             f"(expected {' or '.join(allowed)})")
+
+
+def guess_topics(channels: dict[str, ChannelInfo]) -> dict[str, str]:
+    """One topic per modality from message types and names: images named like depth or
+    thermal are those, any other image is RGB (a colour-named topic preferred); the first
+    PointCloud2 is the radar, the first Imu the IMU."""
+    guess: dict[str, str] = {}
+    for topic in sorted(channels):
+        msgtype, lower = channels[topic].schema, topic.lower()
+        if msgtype in IMAGE_TYPES:
+            kind = _image_kind(lower)
+            if kind == "rgb" and "rgb" in guess and _colour_named(lower) and not _colour_named(guess["rgb"].lower()):
+                guess["rgb"] = topic
+            guess.setdefault(kind, topic)
+        elif msgtype == POINTS_TYPE:
+            guess.setdefault("radar", topic)
+        elif msgtype == IMU_TYPE:
+            guess.setdefault("imu", topic)
+    return guess
+
+
+def _image_kind(lower: str) -> Modality:
+    if any(k in lower for k in ("depth", "disparity")):
+        return "depth"
+    if any(k in lower for k in ("thermal", "flir", "lwir", "boson", "lepton")):
+        return "thermal"
+    return "rgb"
+
+
+def _colour_named(lower: str) -> bool:
+    return any(k in lower for k in ("color", "colour", "rgb"))
+
+
+# -- message conversion ---------------------------------------------------------------------
+def to_array(msg: Any, msgtype: str, modality: Modality) -> np.ndarray:
+    if msgtype == "sensor_msgs/msg/Image":
+        return _image(msg, modality)
+    if msgtype == "sensor_msgs/msg/CompressedImage":
+        return _compressed(msg, modality)
+    if msgtype == POINTS_TYPE:
+        return _points(msg)
+    if msgtype == IMU_TYPE:
+        a, g = msg.linear_acceleration, msg.angular_velocity
+        return np.array([a.x, a.y, a.z, g.x, g.y, g.z], dtype=np.float32)
+    raise ValueError(f"cannot convert {msgtype}")
+
+
+_CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "8UC1": 1, "8UC3": 3,
+             "mono16": 1, "16UC1": 1, "32FC1": 1}
+_YUV = {"yuv422": cv2.COLOR_YUV2BGR_UYVY, "uyvy": cv2.COLOR_YUV2BGR_UYVY, "yuv422_yuy2": cv2.COLOR_YUV2BGR_YUY2,
+        "yuyv": cv2.COLOR_YUV2BGR_YUY2}
+
+
+def _image(msg: Any, modality: Modality) -> np.ndarray:
+    enc, h, w, step = msg.encoding, int(msg.height), int(msg.width), int(msg.step)
+    raw = np.asarray(msg.data, dtype=np.uint8)
+    if enc in _YUV:
+        return cv2.cvtColor(raw[: h * step].reshape(h, step)[:, : w * 2].reshape(h, w, 2), _YUV[enc])
+    if enc not in _CHANNELS:
+        raise ValueError(f"unsupported image encoding {enc!r}")
+    channels = _CHANNELS[enc]
+    dtype = np.dtype({"mono16": "u2", "16UC1": "u2", "32FC1": "f4"}.get(enc, "u1"))
+    dtype = dtype.newbyteorder(">" if msg.is_bigendian else "<")
+    rows = raw[: h * step].reshape(h, step)[:, : w * channels * dtype.itemsize]
+    pixels = np.ascontiguousarray(rows).view(dtype).astype(dtype.newbyteorder("="))
+    pixels = pixels.reshape(h, w, channels) if channels > 1 else pixels.reshape(h, w)
+    return _to_modality(pixels, enc, modality)
+
+
+def _compressed(msg: Any, modality: Modality) -> np.ndarray:
+    raw = np.asarray(msg.data, dtype=np.uint8)
+    if "compresseddepth" in msg.format.lower().replace(" ", ""):
+        raw = raw[12:]  # image_transport's compressedDepth config header
+    data = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
+    if data is None:
+        raise ValueError(f"undecodable {msg.format!r} image")
+    return _to_modality(data, "bgr8" if data.ndim == 3 else "mono", modality)
+
+
+def _to_modality(pixels: np.ndarray, enc: str, modality: Modality) -> np.ndarray:
+    if enc == "rgb8":
+        pixels = cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR)
+    elif enc in ("rgba8", "bgra8"):
+        pixels = cv2.cvtColor(pixels, cv2.COLOR_RGBA2BGR if enc == "rgba8" else cv2.COLOR_BGRA2BGR)
+    if modality == "rgb" and pixels.ndim == 2:
+        if pixels.dtype != np.uint8:
+            pixels = cv2.normalize(pixels, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+        pixels = cv2.cvtColor(pixels, cv2.COLOR_GRAY2BGR)  # the detector wants 3 channels
+    if modality == "depth" and pixels.dtype == np.float32:
+        pixels = np.nan_to_num(pixels * 1000.0, nan=0.0, posinf=0.0).clip(0, 65535).astype(np.uint16)  # m -> mm
+    if modality in ("thermal", "depth") and pixels.ndim == 3:
+        pixels = cv2.cvtColor(pixels, cv2.COLOR_BGR2GRAY)
+    return pixels
+
+
+def _points(msg: Any) -> np.ndarray:
+    n = int(msg.width) * int(msg.height)
+    fields = {f.name: f for f in msg.fields}
+    if n == 0 or not {"x", "y", "z"} <= set(fields):
+        return np.zeros((0, 5), np.float32)
+    raw = np.asarray(msg.data, dtype=np.uint8)[: n * msg.point_step].reshape(n, msg.point_step)
+    order = ">" if msg.is_bigendian else "<"
+
+    def column(name: str) -> np.ndarray:
+        f = fields[name]
+        dtype = np.dtype(_PC2_DTYPES[f.datatype]).newbyteorder(order)
+        cells = np.ascontiguousarray(raw[:, f.offset : f.offset + dtype.itemsize])
+        return cells.view(dtype).reshape(n).astype(np.float32)
+
+    def first(names: tuple[str, ...]) -> np.ndarray:
+        name = next((k for k in names if k in fields), None)
+        return column(name) if name else np.zeros(n, np.float32)
+
+    x, y, z = column("x"), column("y"), column("z")
+    points = np.stack([-y, x, z, first(_VELOCITY), first(_SNR)], axis=1)  # REP 103 -> TI (x right, y ahead)
+    return points[np.isfinite(points[:, :3]).all(axis=1)].astype(np.float32)
