@@ -33,7 +33,7 @@ def configure_logging(fmt: LogFormat = "auto", level: str = "info") -> Literal["
             renderer,
         ],
         wrapper_class=structlog.make_filtering_bound_logger(numeric),
-        logger_factory=structlog.PrintLoggerFactory(sys.stdout),
+        logger_factory=structlog.PrintLoggerFactory(),  # sys.stdout as it is at each line (pytest swaps it)
         cache_logger_on_first_use=False,
     )
     logging.basicConfig(level=max(numeric, logging.WARNING), stream=sys.stdout, format="%(name)s: %(message)s")
