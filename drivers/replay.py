@@ -3,14 +3,11 @@
 Any policy can be evaluated on a log recorded at full fidelity, because this driver does to
 the logged stream what the real sensor would have done under the controller's settings:
 
-* lower rate      -> frames are dropped on the ideal grid of the new rate (``Decimator``);
-* lower resolution-> frames are resized (``cv2.INTER_AREA``); above the logged resolution
-                     they are upscaled and ``apply`` says so in ``notes``;
-* disabled        -> nothing is sent;
-* radar mode      -> points beyond the new mode's maximum unambiguous range are removed and
-                     radial velocities alias into the new mode's +-v_max (FMCW folding);
-                     figures from TI's range/velocity-prioritized xWR68xx demo cfgs
-                     (SENSORS.md 2.4 formulas: 56.25 m / 12.34 m; +-1.00 / +-3.21 m/s).
+the rules are ``respecd.replay.counterfactual``'s, shared with ``bench scenarios --log``:
+the first logged frame of each period of the new rate, images resized (above the logged
+resolution an upscale, said in ``notes``), radar points cut to the mode's maximum range and
+velocities folded into its +-v_max (figures from TI's range/velocity-prioritized xWR68xx demo
+cfgs, SENSORS.md 2.4 formulas: 56.25 m / 12.34 m; +-1.00 / +-3.21 m/s), nothing when disabled.
 
 Frames carry their logged time; the driver sleeps on the injected clock until that time,
 so a ``ManualClock`` replays in lockstep and a scaled clock at 1x or 2x. Radar frames whose
@@ -30,10 +27,11 @@ import numpy as np
 import structlog
 from pydantic import Field
 
-from respecd.drivers.base import Capabilities, Decimator, DriverConfigBase, clamp_request
+from respecd.drivers.base import Capabilities, DriverConfigBase, clamp_request
 from respecd.drivers.base import Driver as _Driver
 from respecd.errors import DriverIOError, DriverUnavailableError
 from respecd.messages import Frame, RadarMode, Resolution, SensorConfig
+from respecd.replay import counterfactual
 
 log = structlog.get_logger(__name__)
 
@@ -54,11 +52,11 @@ class ReplayConfig(DriverConfigBase):
         30.0, ge=1, le=30, description="Highest rate the log can serve (its recorded frame rate)."
     )
     radar_max_range_m: dict[str, float] = Field(
-        {"range": 56.25, "velocity": 12.34},
+        dict(counterfactual.RADAR_MAX_RANGE_M),
         description="Maximum unambiguous range (m) per radar mode; points beyond are dropped on replay.",
     )
     radar_max_velocity_m_s: dict[str, float] = Field(
-        {"range": 1.00, "velocity": 3.21},
+        dict(counterfactual.RADAR_MAX_VELOCITY_M_S),
         description="Maximum radial velocity (m/s) per radar mode; faster points alias into +-v_max.",
     )
 
@@ -79,7 +77,7 @@ class ReplayDriver(_Driver):
         self.served = 0
         self.dropped_by_rate = 0
         self.applied = clamp_request(self.capabilities, config.initial_request())
-        self._decimator = Decimator(self.applied.rate_hz)
+        self._last_logged_t: float | None = None
 
     @property
     def capabilities(self) -> Capabilities:
@@ -114,11 +112,8 @@ class ReplayDriver(_Driver):
             await asyncio.to_thread(prefetch.close)
 
     async def apply(self, request: SensorConfig) -> SensorConfig:
-        applied = clamp_request(self.capabilities, request)
-        if applied.rate_hz != self._decimator.rate_hz:
-            self._decimator = Decimator(applied.rate_hz)
-        self.applied = applied
-        return applied
+        self.applied = clamp_request(self.capabilities, request)
+        return self.applied
 
     async def frames(self) -> AsyncIterator[Frame]:
         prefetch = self._prefetch
@@ -142,26 +137,15 @@ class ReplayDriver(_Driver):
     def counterfactual(self, logged: Frame) -> Frame | None:
         """What the sensor would have sent under ``self.applied``; None when nothing."""
         cfg = self.applied
+        previous, self._last_logged_t = self._last_logged_t, logged.t
         if not cfg.enabled:
             return None
-        if not self._decimator.accept(logged.t):
+        if not counterfactual.delivers(previous, logged.t, cfg.rate_hz):
             self.dropped_by_rate += 1
             return None
         if self.modality == "radar":
-            return self._radar(logged, cfg.mode)
-        if cfg.resolution is not None and logged.data.ndim >= 2:
-            return _resize(logged, cfg.resolution)
-        return logged
-
-    def _radar(self, frame: Frame, mode: RadarMode | None) -> Frame:
-        points = self._reparse(frame)
-        if mode is not None and points.size:
-            rng = np.linalg.norm(points[:, :3], axis=1)
-            points = points[rng <= self.config.radar_max_range_m.get(mode, np.inf)].copy()
-            vmax = self.config.radar_max_velocity_m_s.get(mode)
-            if vmax:  # FMCW Doppler folds into [-vmax, vmax)
-                points[:, 3] = (points[:, 3] + vmax) % (2 * vmax) - vmax
-        return replace(frame, data=points.astype(np.float32, copy=False))
+            logged = replace(logged, data=self._reparse(logged))
+        return counterfactual.transform(logged, cfg, self.config.radar_max_range_m, self.config.radar_max_velocity_m_s)
 
     def _reparse(self, frame: Frame) -> np.ndarray:
         """Points from the raw UART bytes through the live parser, else the logged cloud."""
@@ -228,36 +212,3 @@ class _Prefetch:
     def close(self) -> None:
         self._closed.set()
         self._thread.join(timeout=2 * self.POLL_S + 1.0)
-
-
-def _resize(frame: Frame, resolution: Resolution) -> Frame:
-    import cv2
-
-    height, width = frame.data.shape[:2]
-    if (width, height) == tuple(resolution):
-        return frame
-    shrink = resolution[0] * resolution[1] < width * height
-    data = cv2.resize(frame.data, tuple(resolution), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
-    meta = dict(frame.meta)
-    gt = meta.get("gt")
-    if gt is not None:
-        meta["gt"] = _scale_boxes(gt, resolution[0] / width, resolution[1] / height)
-    return replace(frame, data=data, meta=meta)
-
-
-def _scale_boxes(gt: Any, sx: float, sy: float) -> Any:
-    """Ground-truth boxes follow the image when it is resized: [x1, y1, x2, y2] in pixels,
-    bare or as the ``box`` of a dict (the simulator's form, other keys kept)."""
-    if not isinstance(gt, (list, tuple)):
-        return gt
-    scaled = []
-    for item in gt:
-        if isinstance(item, dict) and "box" in item:
-            x1, y1, x2, y2 = item["box"]
-            scaled.append({**item, "box": [x1 * sx, y1 * sy, x2 * sx, y2 * sy]})
-        elif isinstance(item, (list, tuple)) and len(item) == 4:
-            x1, y1, x2, y2 = item
-            scaled.append([x1 * sx, y1 * sy, x2 * sx, y2 * sy])
-        else:
-            return gt  # an unknown shape: leave it alone rather than guess
-    return scaled

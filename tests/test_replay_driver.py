@@ -94,6 +94,7 @@ async def test_radar_modes_cut_range_and_fold_velocity(session: SessionLog) -> N
     ranged = driver.counterfactual(frame).data
     assert len(ranged) == 3
     np.testing.assert_allclose(ranged[:, 3], [0.5, -0.5, 0.2], atol=1e-5)  # -2.5 folds into +-1.00
+    driver = _driver(session, "radar", "radar", mode="range")  # the same logged frame, delivered afresh
     await driver.apply(SensorConfig("radar", True, 10.0, mode="velocity"))
     fast = driver.counterfactual(frame).data
     np.testing.assert_array_equal(fast[:, :3], RADAR_POINTS[:2, :3])  # 30 m point is out of range
@@ -128,3 +129,28 @@ async def test_missing_sensor_or_log_is_unavailable(session: SessionLog) -> None
     orphan = ReplayDriver(ReplayConfig(name="cam", modality="rgb"), ManualClock())
     with pytest.raises(DriverUnavailableError, match="needs an opened log"):
         await orphan.start()
+
+
+def test_streaming_and_random_access_deliver_the_same_frames() -> None:
+    """The replay driver (streaming) and `bench scenarios --log` (random access) share one rule."""
+    from respecd.replay import counterfactual
+
+    times = [i / 30 for i in range(90)] + [3.0 + i / 7 for i in range(20)]  # 30 Hz, then a slow stretch
+    for rate in (1.0, 5.0, 9.0, 10.0, 30.0):
+        streamed, previous = [], None
+        for i, t in enumerate(times):
+            if counterfactual.delivers(previous, t, rate):
+                streamed.append(i)
+            previous = t
+        for t in np.linspace(0.0, times[-1], 400):
+            newest = max((i for i in streamed if times[i] <= t + 1e-9), default=None)
+            assert counterfactual.delivered_index(times, rate, float(t)) == newest, (rate, t)
+
+
+def test_depth_is_resized_by_nearest_neighbour_only() -> None:
+    from respecd.replay import counterfactual
+
+    depth = np.array([[1000, 1000, 4000, 4000]] * 2, np.uint16)  # a foreground edge against a wall
+    for size in ((2, 1), (8, 4)):
+        out = counterfactual.resize(Frame("depth", 0.0, 0, depth), size).data
+        assert set(np.unique(out)) <= {1000, 4000}  # no depth in between was made up

@@ -3,12 +3,11 @@ session instead of the simulator.
 
 Every policy drives its own controller over the log's time line, exactly as in
 ``rollout.py``; what changes is where the frames come from. At an instant ``t`` a sensor
-configured at ``r`` Hz hands the detector the newest *logged* frame at or before its own
-grid time ``floor(t r) / r`` (decimation: a lower rate than recorded is exact; a higher one
-cannot invent frames and gets the recorded ones), resized to the chosen resolution (a
-resolution above the recorded one is an upscale, said in the output). The radar chirp mode
-cannot be changed after the fact: radar frames are the recorded ones whatever mode a
-policy picks (``radar_mode_counterfactual: false`` in the JSON).
+configured at ``r`` Hz hands the detector what ``respecd.replay.counterfactual`` says it
+delivered by then — the rules ``respecd --replay``'s driver applies to the same log: the
+first logged frame of each period of ``r`` (a higher rate than recorded cannot invent
+frames), resized to the chosen resolution (above the recorded one an upscale), radar points
+cut and folded to the chosen chirp mode (``radar_mode_counterfactual: true`` in the JSON).
 
 Ground truth comes from the RGB frames' ``meta["gt"]`` (sessions recorded on the simulated
 rover carry it): the newest logged RGB frame at ``t`` gives the truth at ``t``, so a
@@ -27,12 +26,10 @@ import time
 from collections import OrderedDict
 from typing import Any
 
-import cv2
 import numpy as np
 
 from respecd.errors import InputError
 from respecd.lab.experiment.cache import OutcomeCache, outcome_key
-from respecd.lab.experiment.frames import frame_time
 from respecd.lab.experiment.outcomes import MOTION_IMAGERS, Outcome, detect
 from respecd.lab.experiment.rollout import Piece
 from respecd.messages import Frame, SensorConfig
@@ -40,8 +37,7 @@ from respecd.record import codec
 from respecd.record.codec import LoggedSchema
 from respecd.record.reader import SessionLog, open_log
 from respecd.record.topics import meta_topic, sensor_topic
-
-_IMAGES = ("rgb", "thermal", "depth")
+from respecd.replay import counterfactual
 
 
 class LogFrames:
@@ -62,10 +58,10 @@ class LogFrames:
             if topic in metas:
                 stashed[metas[topic]] = (ns, json.loads(data))
                 continue
-            modality = topics[topic]
-            meta = stashed.pop(modality, None)
-            self.times[modality].append((ns - session.start_ns) / 1e9)  # seconds since the log began
-            self.records[modality].append((schema, data, ns, meta[1] if meta and meta[0] == ns else None))
+            kind = topics[topic]
+            meta = stashed.pop(kind, None)
+            self.times[kind].append((ns - session.start_ns) / 1e9)  # seconds since the log began
+            self.records[kind].append((schema, data, ns, meta[1] if meta and meta[0] == ns else None))
         if not self.times.get("rgb"):
             raise InputError(f"{session.path}: the log holds no RGB frames (the detector needs them)")
         self._decoded: OrderedDict[tuple[str, int], Frame] = OrderedDict()
@@ -111,18 +107,6 @@ class LogFrames:
         return pieces
 
 
-def _resize(frame: Frame, resolution: tuple[int, int] | None) -> Frame:
-    if resolution is None or frame.modality not in _IMAGES:
-        return frame
-    h, w = frame.data.shape[:2]
-    if (w, h) == tuple(resolution):
-        return frame
-    shrink = resolution[0] * resolution[1] < w * h
-    interp = cv2.INTER_AREA if shrink else (cv2.INTER_NEAREST if frame.modality == "depth" else cv2.INTER_LINEAR)
-    return Frame(frame.modality, frame.t, frame.seq, cv2.resize(frame.data, tuple(resolution), interpolation=interp),
-                 frame.meta)
-
-
 class LogEvaluator:
     """The rollout's source for a recorded session (same hooks as ``outcomes.Evaluator``)."""
 
@@ -141,29 +125,37 @@ class LogEvaluator:
         return False  # logged frames are all distinct
 
     def _pick(self, modality: str, config: SensorConfig, t: float) -> int | None:
-        return self.frames.index_at(modality, frame_time(t, config.rate_hz))
+        return counterfactual.delivered_index(self.frames.times[modality], config.rate_hz, t)
 
     def outcome(self, piece: Piece, configs: dict[str, SensorConfig], t: float, attribute: bool,
                 slot: int | None = None) -> Outcome:
         t_log = piece.start_s + t
-        picks = {m: self._pick(m, c, t_log) for m, c in configs.items()
-                 if m in self.inputs and c.enabled and m in self.frames.times}
-        picks = {m: i for m, i in picks.items() if i is not None}
+        picked = {m: self._pick(m, c, t_log) for m, c in configs.items()
+                  if m in self.inputs and c.enabled and m in self.frames.times}
+        picks = {m: i for m, i in picked.items() if i is not None}
         res = {m: configs[m].resolution for m in picks}
-        before = {m: self._pick(m, configs[m], t_log - 1.0 / configs[m].rate_hz) for m in MOTION_IMAGERS if m in picks}
-        before = {m: j for m, j in before.items() if j is not None}
-        parts = [f"{m}:{i}:{res[m]}" for m, i in picks.items()] + [f"before {m}:{j}" for m, j in before.items()]
+        earlier = {m: self._pick(m, configs[m], t_log - 1.0 / configs[m].rate_hz) for m in MOTION_IMAGERS
+                   if m in picks}
+        before = {m: j for m, j in earlier.items() if j is not None}
+        parts = [f"{m}:{i}:{res[m]}:{configs[m].mode}" for m, i in picks.items()]
+        parts += [f"before {m}:{j}" for m, j in before.items()]
         key = outcome_key(self.fingerprint, "", parts, attribute)  # the motion cue's previous frame is in the key
         cached = self.cache.get(key)
         if cached is not None:
             return Outcome.from_json(cached)
         start = time.perf_counter()
-        frames = {m: _resize(self.frames.frame(m, i), res[m]) for m, i in picks.items()}
-        prev = {m: _resize(self.frames.frame(m, j), res[m]) for m, j in before.items()}
+        frames = {m: self._deliver(m, i, configs[m]) for m, i in picks.items()}
+        prev = {m: self._deliver(m, j, configs[m]) for m, j in before.items()}
         result = detect(self.detector, frames, prev, attribute)
         self.inference_s += time.perf_counter() - start
         self.cache.put(key, result.to_json())
         return result
+
+    def _deliver(self, modality: str, index: int, config: SensorConfig) -> Frame:
+        frame = counterfactual.transform(self.frames.frame(modality, index), config, counterfactual.RADAR_MAX_RANGE_M,
+                                         counterfactual.RADAR_MAX_VELOCITY_M_S)
+        assert frame is not None, "only enabled sensors are picked"
+        return frame
 
     def truth(self, piece: Piece, t: float, resolution: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
         from respecd.lab.detector.data import gt_arrays
@@ -194,9 +186,9 @@ def prepare_log(args: Any, detector: Any) -> tuple:
 
     def frames_for(res: tuple[int, int]) -> dict[str, Frame]:
         picks = {m: frames.index_at(m, middle) for m in evaluator.inputs if m in frames.times}
-        return {m: _resize(frames.frame(m, i), res if m == "rgb" else None) for m, i in picks.items()
-                if i is not None}
+        return {m: counterfactual.resize(frames.frame(m, i), res) if m == "rgb" else frames.frame(m, i)
+                for m, i in picks.items() if i is not None}
 
-    extra = {"log": str(args.log), "log_duration_s": round(frames.duration_s, 2), "radar_mode_counterfactual": False,
+    extra = {"log": str(args.log), "log_duration_s": round(frames.duration_s, 2), "radar_mode_counterfactual": True,
              "ground_truth": "gt" in frames.frame("rgb", 0).meta}
     return evaluator, pieces, frames_for, extra
