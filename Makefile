@@ -31,8 +31,13 @@ bench: install
 weights: install
 	$(BIN)/respecd train --data sim --out respecd/perception/weights/sim-rover.pt
 
+TYPECHECK := build/typecheck
 lint: install
 	$(BIN)/ruff check respecd drivers tests
+	rm -rf $(TYPECHECK) && mkdir -p $(TYPECHECK)/respecd
+	for entry in respecd/*; do ln -s "$$PWD/$$entry" $(TYPECHECK)/respecd/; done
+	ln -s "$$PWD/drivers" $(TYPECHECK)/respecd/drivers
+	cd $(TYPECHECK) && $(CURDIR)/$(BIN)/mypy --config-file $(CURDIR)/pyproject.toml respecd
 
 clean:
 	rm -rf $(VENV) build dist *.egg-info out

@@ -108,6 +108,7 @@ class RealSenseSource:
         self.queue = self.rs.frame_queue(2)  # small: a fresh frame beats a complete history
         if self.cfg.stream == "depth" and self.sensor.supports(self.rs.option.depth_units):
             self.depth_units = float(self.sensor.get_option(self.rs.option.depth_units))  # metres per count
+        assert self.caps is not None, "capabilities are read before the stream opens"
         self.applied = self.reconfigure(clamp_request(self.caps, self.driver.request))
         log.info("realsense_open", sensor=self.cfg.name, device=_info(self.rs, self.device), modes=len(self.modes))
 
@@ -169,7 +170,7 @@ class RealSenseSource:
     # --- reconfiguration (worker thread) ---------------------------------------------------
     def reconfigure(self, applied: SensorConfig) -> SensorConfig:
         if self.cfg.stream == "imu":
-            wanted, notes = tuple(select_motion_modes(self.modes)), []
+            wanted, notes = tuple(select_motion_modes(self.modes)), list[str]()
         else:
             offered = video_modes(self.modes, self.cfg.stream)
             mode, notes = select_video_mode(offered, applied.resolution, applied.rate_hz)

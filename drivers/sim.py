@@ -204,17 +204,20 @@ class SimDriver(Driver):
         modality, res = self.modality, applied.resolution
         sim = self.world.config
         if modality == "rgb":
+            assert res is not None, "an imager always has a resolution"
             max_exposure = min(1.0 / applied.rate_hz, sim.max_exposure_s)
             return lambda: (
                 render_rgb(state, res, max_exposure, rng),
                 {"gt": ground_truth(state, res), **rgb_exposure(state, res, max_exposure)},
             )
         if modality == "thermal":
+            assert res is not None, "an imager always has a resolution"
             return lambda: (
                 render_thermal(state, res, rng),
                 {"gt": ground_truth(state, res), "units": "cK", "kelvin_per_count": 0.01},
             )
         if modality == "depth":
+            assert res is not None, "an imager always has a resolution"
             return lambda: (
                 render_depth(state, res, rng),
                 {"gt": ground_truth(state, res), "units": "mm", "valid_m": (0.3, 3.0)},
@@ -223,7 +226,7 @@ class SimDriver(Driver):
         if modality == "radar":
             figures = radar_figures(applied.mode, applied.rate_hz).as_dict()
             return lambda: (
-                render_radar(state, applied.mode, applied.rate_hz, rng),
+                render_radar(state, applied.mode or "range", applied.rate_hz, rng),
                 {"gt": ground_truth(state, gt_res), "gt_resolution": gt_res, "mode": applied.mode, "figures": figures},
             )
         return lambda: (

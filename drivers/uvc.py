@@ -85,7 +85,8 @@ class UVCDriver(ThreadedDriver):
         super().__init__(config, clock, context)
         self.config: UVCConfig = config
         self.back_pressure = config.is_file and not config.realtime
-        self._caps = Capabilities("rgb", tuple(map(tuple, config.resolutions)))  # until the device says more
+        offered = tuple((int(w), int(h)) for w, h in config.resolutions)
+        self._caps = Capabilities("rgb", offered)  # until the device says more
         self._source: UVCSource | None = None
         self._request = config.initial_request()  # clamped again against what the device confirms
         self.applied = clamp_request(self._caps, self._request)

@@ -100,7 +100,7 @@ class UVCSource:
     def _probe_camera(self) -> None:
         """Ask the camera for each configured size and keep the ones it confirms."""
         assert self.cap is not None
-        confirmed = [r for r in map(tuple, self.cfg.resolutions) if self._set_size(r) == r]
+        confirmed = [r for r in ((int(w), int(h)) for w, h in self.cfg.resolutions) if self._set_size(r) == r]
         self.native = self._size()
         self.cap.set(cv2.CAP_PROP_FPS, MAX_RATE_HZ)
         self.device_fps = self.cap.get(cv2.CAP_PROP_FPS) or MAX_RATE_HZ

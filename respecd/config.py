@@ -74,7 +74,7 @@ class TelemetryConfig(StrictModel):
 
 def _sensor_union() -> Any:
     classes = tuple(config_classes())
-    return Annotated[Union[classes], Field(discriminator="driver")]  # type: ignore[valid-type]
+    return Annotated[Union[classes], Field(discriminator="driver")]
 
 
 @functools.cache

@@ -83,7 +83,7 @@ class _Scan:
         self._aliases = 0
 
     def feed(self, event: yaml.Event) -> None:
-        line = event.start_mark.line + 1
+        line = event.start_mark.line + 1 if event.start_mark is not None else 1
         if isinstance(event, yaml.CollectionEndEvent):
             self._close(self._stack.pop())
         elif isinstance(event, yaml.AliasEvent):
@@ -108,7 +108,7 @@ class _Scan:
     def _node(self, event: yaml.NodeEvent, line: int) -> None:
         self._expanded += 1
         scalar = isinstance(event, yaml.ScalarEvent)
-        path = self._place(line, is_scalar_key=event.value if scalar else None)
+        path = self._place(line, is_scalar_key=getattr(event, "value", None) if scalar else None)
         if scalar:
             if event.anchor:
                 self._sizes[event.anchor] = 1

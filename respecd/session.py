@@ -280,7 +280,7 @@ class Session:
         return job.result()
 
     async def _wait(self, duration: float | None, stop: asyncio.Event) -> None:
-        waiters = [asyncio.ensure_future(stop.wait())]
+        waiters: list[asyncio.Future[Any]] = [asyncio.ensure_future(stop.wait())]
         if duration is not None:
             waiters.append(asyncio.ensure_future(self.clock.sleep_until(self.clock.now() + duration)))
         try:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from respecd.errors import InputError
 
@@ -76,7 +77,7 @@ def main(args: argparse.Namespace) -> int:
     settings = TrainSettings(args.episodes, args.seeds, args.min_s, args.max_s, args.seed, args.max_minutes)
     bar = tqdm(total=args.episodes, desc="train-policy", unit="episode")
 
-    def progress(episode: int, result) -> None:  # type: ignore[no-untyped-def]
+    def progress(episode: int, result: Any) -> None:
         cache = evaluator.cache
         total = max(1, cache.hits + cache.misses)
         bar.set_postfix(reward=f"{result.episode_reward[-1]:.3f}", eps=f"{result.table.epsilon:.3f}",
@@ -100,7 +101,7 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _info(profile, args, result, evaluator, latency_ms) -> dict:  # type: ignore[no-untyped-def]
+def _info(profile: Any, args: argparse.Namespace, result: Any, evaluator: Any, latency_ms: dict[str, Any]) -> dict:
     return {"profile": profile.name, "policy": "learn", "trainer": "respecd train-policy",
             "episodes": len(result.episode_reward), "decisions": result.decisions,
             "episode_reward": [round(r, 5) for r in result.episode_reward],

@@ -53,7 +53,7 @@ class Slot:
             enabled=True,
             rate_hz=self.rates[rate],
             resolution=value if isinstance(value, tuple) else None,
-            mode=value if isinstance(value, str) else None,  # type: ignore[arg-type]
+            mode=value if isinstance(value, str) else None,
         )
 
     def nearest(self, config: SensorConfig) -> tuple[int, int]:
@@ -106,7 +106,7 @@ def _fit_settings(settings: tuple[Setting, ...], caps: Capabilities | None, moda
         probe = SensorConfig(
             modality=modality,
             resolution=setting if isinstance(setting, tuple) else None,
-            mode=setting if isinstance(setting, str) else None,  # type: ignore[arg-type]
+            mode=setting if isinstance(setting, str) else None,
         )
         applied = clamp_request(caps, probe)
         value: Setting = applied.resolution if applied.resolution is not None else applied.mode

@@ -8,13 +8,14 @@ the controller chose.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
 from respecd.control.imagestats import BlockSampler, MotionMeter, spread
 from respecd.control.state import Observation
-from respecd.messages import Frame, Health, Percept
+from respecd.messages import Frame, Health, Modality, Percept
 
 REFERENCE_FPS = 30.0  # illumination is normalised to a 1/30 s exposure at gain 1
 _HEALTH_LEVEL = {Health.GOOD: 0, Health.FAIR: 1, Health.POOR: 2}
@@ -61,7 +62,7 @@ class FeatureExtractor:
         t = percept.t if received_t is None else received_t
         return Sample(t, percept.conf_agg, percept.latency, luminance, motion, gyro, points, level, contributions)
 
-    def _images(self, frames: dict[str, Frame]) -> tuple[float | None, float | None]:
+    def _images(self, frames: Mapping[Modality, Frame]) -> tuple[float | None, float | None]:
         """Illumination from RGB; motion as the larger score of RGB and thermal (in the dark
         the RGB noise hides a walking person that the thermal camera still sees)."""
         luminance, scores = None, []

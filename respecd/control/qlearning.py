@@ -46,7 +46,7 @@ class QTable:
 
     @property
     def shape(self) -> tuple[int, int]:
-        return self.q.shape  # type: ignore[return-value]
+        return self.q.shape
 
     def state_updates(self) -> np.ndarray:
         """Updates per state (each visits one column here, one per block in a factored table)."""

@@ -99,7 +99,7 @@ class Aligner:
         return cv2.warpPerspective(img, homography, (w, h), flags=cv2.INTER_LINEAR, borderValue=0.0)
 
     def _depth(self, depth_mm: np.ndarray, cal: Calibration | None, k_rgb: np.ndarray, w: int, h: int) -> np.ndarray:
-        z = depth_mm.astype(np.float32) / 1000.0
+        z: np.ndarray = depth_mm.astype(np.float32) / 1000.0
         if cal is None or cal.intrinsics is None:
             z = cv2.resize(z, (w, h), interpolation=cv2.INTER_NEAREST)
         else:

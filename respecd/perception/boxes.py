@@ -62,7 +62,7 @@ def pad_to_stride(height: int, width: int, stride: int = 32) -> tuple[int, int]:
 def postprocess(
     boxes: torch.Tensor,
     scores_all: torch.Tensor,
-    input_hw: tuple[int, int],
+    input_hw: tuple[int, ...],
     score_threshold: float,
     iou_threshold: float,
     max_det: int,

@@ -88,7 +88,7 @@ class FusionDetector:
                 dets = postprocess(boxes, scores, tuple(x.shape[2:]), cfg.score_threshold, cfg.iou_threshold,
                                    cfg.max_detections)[0]
             return self._detections(dets, None, aligned.size), None
-        dets, per_target, scene = attribute(self.model, x, presence, cfg.score_threshold, cfg.iou_threshold,
+        dets, per_target, scene = attribute(self.model, x, presence, cfg.score_threshold, cfg.iou_threshold,  # type: ignore[assignment]
                                             cfg.max_detections, cfg.attribution_targets)
         fresh = grouped(self.channels, scene.cpu()) if scene is not None else None
         contributions = self.scores.update(t, fresh)
@@ -105,7 +105,8 @@ class FusionDetector:
             contrib = None
             if per_target is not None and i < len(per_target):
                 contrib = {c: float(v) for c, v in zip(self.channels, per_target[i].tolist(), strict=True)}
-            out.append(Detection(box=tuple(float(v) for v in boxes[i]), confidence=float(scores[i]),
+            x1, y1, x2, y2 = (float(v) for v in boxes[i])
+            out.append(Detection(box=(x1, y1, x2, y2), confidence=float(scores[i]),
                                  label=names[int(labels[i])], contributions=contrib))
         return tuple(out)
 

@@ -131,10 +131,10 @@ class Head(nn.Module):
             nn.Sequential(Conv(ci, cb, 3), Conv(cb, cb, 3), nn.Conv2d(cb, 4 * reg_max, 1)) for ci in c
         )
         self.cls = nn.ModuleList(nn.Sequential(Conv(ci, cc, 3), Conv(cc, cc, 3), nn.Conv2d(cc, nc, 1)) for ci in c)
-        for box, cls, s in zip(self.box, self.cls, STRIDES, strict=True):
-            nn.init.constant_(box[-1].bias, 1.0)
+        for box, cls, s in zip(self.box, self.cls, STRIDES, strict=True):  # each an nn.Sequential
+            nn.init.constant_(box[-1].bias, 1.0)  # type: ignore[index]
             # prior: ~5 objects per 640x640 image (ultralytics' bias init)
-            nn.init.constant_(cls[-1].bias, math.log(5 / nc / (640 / s) ** 2))
+            nn.init.constant_(cls[-1].bias, math.log(5 / nc / (640 / s) ** 2))  # type: ignore[index]
 
     def forward(self, feats: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
         boxes, logits = [], []
@@ -174,10 +174,11 @@ class FusionNet(nn.Module):
         return self.head(feats)
 
     def decode(self, raw: tuple[torch.Tensor, torch.Tensor],
-               input_hw: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+               input_hw: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor]:
         """Raw head output -> boxes (B, N, 4) x1y1x2y2 in input pixels and class probabilities (B, N, nc)."""
         box_logits, cls_logits = raw
-        points, strides = anchor_grid(*input_hw, device=box_logits.device)
+        height, width = input_hw
+        points, strides = anchor_grid(height, width, device=box_logits.device)
         return decode_boxes(box_logits, points, strides, self.spec.reg_max), cls_logits.sigmoid()
 
 

@@ -153,7 +153,7 @@ class PerceptionStage:
         the detector again on the same RGB/thermal/radar frames would cost a full inference
         for an identical answer, so lowering those sensors' rates really lowers compute.
         """
-        seen = {m: (f.seq, f.t) for m, f in bundle.frames.items() if m in self._inputs}
+        seen: dict[str, tuple[int, float]] = {m: (f.seq, f.t) for m, f in bundle.frames.items() if m in self._inputs}
         if seen == self._last_inputs:
             return False
         self._last_inputs = seen

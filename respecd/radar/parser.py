@@ -304,7 +304,10 @@ def decode_oob(
         return f"{header.total_len - end} B after the last TLV (padding is < {tlv.SEGMENT})"
     view = memoryview(raw)
     n, v3 = header.num_points, header.sdk_major >= 3
-    points = side = stats = temperature = None
+    points: Any = None  # each a decoded TLV (an error string returns above)
+    side: Any = None
+    stats: Any = None
+    temperature: Any = None
     for tlv_type, start, length in walked:  # plain branches: this loop runs for every packet
         payload = view[start:start + length]
         result: Any = None

@@ -40,7 +40,7 @@ class LockstepLoop(asyncio.SelectorEventLoop):
         self.in_flight = 0
         self._jobs: deque[tuple[asyncio.Future[Any], asyncio.Future[Any]]] = deque()
 
-    def run_in_executor(self, executor: Any, func: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:
+    def run_in_executor(self, executor: Any, func: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:  # type: ignore[override]
         inner = super().run_in_executor(executor, func, *args)
         outer: asyncio.Future[Any] = self.create_future()
         self.in_flight += 1

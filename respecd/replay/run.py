@@ -221,7 +221,7 @@ def _progress_bar() -> Any:
     except ImportError:  # the lab extra: without it a replay runs without a progress bar
         return _NoBar
 
-    class Bar(tqdm):  # type: ignore[misc]
+    class Bar(tqdm):
         monitor_interval = 0  # no monitor thread: it would outlive the replay by 10 s
 
     return Bar

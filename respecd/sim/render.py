@@ -108,7 +108,7 @@ def _paint_person_rgb(canvas: np.ndarray, cam: Camera, target: Target, exposure_
     lut[1:4, 0] = (SKIN_BGR, target.color, legs)
     colored = cv2.LUT(cv2.merge((labels, labels, labels)), lut)
     layer = cv2.multiply(colored, fabric(cam.height, cam.width)[y1:y2, x1:x2], scale=1 / 255)
-    mask = cv2.compare(labels, 0, cv2.CMP_GT)
+    mask = cv2.compare(labels, 0, cv2.CMP_GT)  # type: ignore[call-overload]
     dst = canvas[y1:y2, x1:x2]
     if max(blur) < 1.0:
         cv2.copyTo(layer, mask, dst)
@@ -183,7 +183,7 @@ def render_thermal(state: SceneState, resolution: tuple[int, int], rng: np.rando
 
             _paint_occluder_scalar(temp, cam, item, item.temperature_k, smoke)
     temp = cv2.GaussianBlur(temp, (0, 0), 0.7 * resolution[0] / 160)  # lens + detector MTF
-    temp += rng.standard_normal(temp.shape, dtype=np.float32) * NETD_K
+    temp += rng.standard_normal(temp.shape, dtype=np.float32) * NETD_K  # type: ignore[arg-type]
     return np.clip(np.round(temp * 100.0), 0, 65535).astype(np.uint16)
 
 
@@ -206,11 +206,11 @@ def render_depth(state: SceneState, resolution: tuple[int, int], rng: np.random.
     # stereo RMS error ~ z^2 * subpixel / (focal * baseline) = 0.0025 z^2 m for a D435-class camera;
     # OpenCV calls on whole planes: this is the costliest per-pixel work of the sim after RGB
     jitter_dn, dropout_dn, _ = cv2.split(noise)
-    jitter = cv2.subtract(jitter_dn, 128, dtype=cv2.CV_32F)  # N(0, NOISE_STD)
+    jitter = cv2.subtract(jitter_dn, 128, dtype=cv2.CV_32F)  # type: ignore[call-overload]  # N(0, NOISE_STD)
     spread = cv2.multiply(depth, depth, scale=2.5 / NOISE_STD)  # mm of error per unit jitter
     mm = cv2.scaleAdd(depth, 1000.0, cv2.multiply(spread, jitter))
     valid = cv2.inRange(mm, DEPTH_MIN_MM, DEPTH_MAX_MM)
-    valid &= cv2.compare(dropout_dn, 128 + 2.3 * NOISE_STD, cv2.CMP_LT)  # ~1 % dropouts
+    valid &= cv2.compare(dropout_dn, 128 + 2.3 * NOISE_STD, cv2.CMP_LT)  # type: ignore[call-overload,misc]  # ~1 % dropouts
     out = np.zeros(mm.shape, np.uint16)
     cv2.copyTo(mm.astype(np.uint16), valid, out)
     return out

@@ -56,7 +56,7 @@ def _observations(n: int, seed: int) -> list[Any]:
 
 
 def _percepts(n: int, seed: int) -> list[Any]:
-    from respecd.messages import Bundle, Frame, Health, Percept, SyncStats
+    from respecd.messages import Bundle, Frame, Health, Modality, Percept, SyncStats
 
     rng = np.random.default_rng(seed)
     rgb = [rng.integers(0, 256, (720, 1280, 3), dtype=np.uint8) for _ in range(2)]
@@ -64,14 +64,15 @@ def _percepts(n: int, seed: int) -> list[Any]:
     imu = rng.normal(size=6).astype(np.float32)
     percepts = []
     for i in range(n):
-        frames = {"rgb": Frame("rgb", i / 10, i, rgb[i % 2]), "radar": Frame("radar", i / 10, i, radar),
-                  "imu": Frame("imu", i / 10, i, imu)}
+        frames: dict[Modality, Frame] = {"rgb": Frame("rgb", i / 10, i, rgb[i % 2]),
+                                         "radar": Frame("radar", i / 10, i, radar), "imu": Frame("imu", i / 10, i, imu)}
         bundle = Bundle(i / 10, frames, SyncStats(10.0, 1.0, 0.0, Health.GOOD), i)
         percepts.append(Percept(i / 10, (), 0.5, {"rgb": 0.6, "thermal": 0.4}, 0.05, bundle))
     return percepts
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    from respecd.clock import MonotonicClock
     from respecd.config import load_profile
     from respecd.control.controller import Controller
     from respecd.control.features import FeatureExtractor, Window
@@ -88,7 +89,8 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if actions:
         update["actions"] = profile.controller.actions.model_copy(update=actions)
     config = profile.controller.model_copy(update=update)
-    caps = {s.name: driver_class(s.driver)(s, None).capabilities for s in profile.sensors}  # no I/O in constructors
+    clock = MonotonicClock()
+    caps = {s.name: driver_class(s.driver)(s, clock).capabilities for s in profile.sensors}  # no I/O in constructors
     controller = Controller.from_profile(config, profile, caps)
     applied = {s.name: s.initial_request() for s in profile.sensors}
     observations = _observations(args.steps, args.seed)
@@ -105,7 +107,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         now = percepts[start + 9].t
         state_ns += _time(lambda t: controller.states.index(controller.states.bins(window.observe(t))), [now])
     probe = SystemProbe()
-    probe_ns = _time(lambda _: probe.read(), range(200))
+    probe_ns = _time(lambda _: probe.read(), list(range(200)))
 
     step = _percentiles(step_ns)
     state = _percentiles(state_ns)

@@ -93,7 +93,7 @@ async def _recording_overhead(
     rates = {"rgb": 30.0} if rgb_only else {"rgb": 30.0, "thermal": 9.0, "radar": 10.0, "depth": 15.0, "imu": 30.0}
     frames = _frames(size, args.seed)
     clock = MonotonicClock()
-    config = RecordingConfig(path=str(path), compression=compression)  # type: ignore[arg-type]
+    config = RecordingConfig(path=str(path), compression=compression)
     recorder = Recorder(config, {"name": "bench", "sensors": []}, clock)
     recorder.start()
     tap_cpu = 0.0

@@ -12,7 +12,9 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import functools
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -34,6 +36,30 @@ def _percentiles(wall: list[float], cpu: list[float]) -> dict[str, float]:
     }
 
 
+def _rgb(state: Any, rng: np.random.Generator, res: tuple[int, int]) -> Any:
+    from respecd.sim import render
+
+    return render.render_rgb(state, res, 1 / 30, rng)
+
+
+def _thermal(state: Any, rng: np.random.Generator, res: tuple[int, int]) -> Any:
+    from respecd.sim import render
+
+    return render.render_thermal(state, res, rng)
+
+
+def _depth(state: Any, rng: np.random.Generator, res: tuple[int, int]) -> Any:
+    from respecd.sim import render
+
+    return render.render_depth(state, res, rng)
+
+
+def _radar(state: Any, rng: np.random.Generator, mode: str) -> Any:
+    from respecd.sim import render
+
+    return render.render_radar(state, mode, 10.0, rng)
+
+
 def render_costs(frames: int, seed: int) -> dict[str, Any]:
     """Median and p95 render time (ms) per modality and setting, OpenCV on one thread."""
     import cv2
@@ -42,20 +68,20 @@ def render_costs(frames: int, seed: int) -> dict[str, Any]:
     from respecd.sim.world import SimulationConfig, World
 
     world = World(SimulationConfig(), seed)
-    settings = {
+    settings: dict[str, Callable[[Any, np.random.Generator], Any]] = {
         **{
-            f"rgb {w}x{h}": lambda s, r, res=(w, h): render.render_rgb(s, res, 1 / 30, r)
+            f"rgb {w}x{h}": functools.partial(_rgb, res=(w, h))
             for w, h in ((1280, 720), (960, 540), (640, 360))
         },
         **{
-            f"thermal {w}x{h}": lambda s, r, res=(w, h): render.render_thermal(s, res, r)
+            f"thermal {w}x{h}": functools.partial(_thermal, res=(w, h))
             for w, h in ((160, 120), (320, 240))
         },
         **{
-            f"depth {w}x{h}": lambda s, r, res=(w, h): render.render_depth(s, res, r)
+            f"depth {w}x{h}": functools.partial(_depth, res=(w, h))
             for w, h in ((848, 480), (640, 480), (424, 240))
         },
-        **{f"radar {m}": lambda s, r, m=m: render.render_radar(s, m, 10.0, r) for m in ("range", "velocity")},
+        **{f"radar {m}": functools.partial(_radar, mode=m) for m in ("range", "velocity")},
         "imu": lambda s, r: render.render_imu(s, r),
         "ground_truth 1280x720": lambda s, r: render.ground_truth(s, (1280, 720)),
     }
@@ -112,7 +138,7 @@ async def _stream(seconds: float, seed: int) -> dict[str, Any]:
     profile = load_profile()
     clock = MonotonicClock()
     context = DriverContext(seed=seed, simulation=profile.simulation)
-    drivers = [driver_class(s.driver)(s, clock, context) for s in profile.sensors]
+    drivers: list[Any] = [driver_class(s.driver)(s, clock, context) for s in profile.sensors]  # SimDrivers
     counts = {d.name: 0 for d in drivers}
     lags: list[float] = []
 

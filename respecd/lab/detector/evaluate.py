@@ -96,7 +96,7 @@ def _predict(detector: FusionDetector, x: torch.Tensor, presence: torch.Tensor, 
     else:
         with torch.inference_mode():
             boxes, scores = model.decode(model(x, presence), tuple(x.shape[2:]))
-            dets = postprocess(boxes, scores, tuple(x.shape[2:]), cfg.score_threshold, cfg.iou_threshold,
+            dets = postprocess(boxes, scores, tuple(x.shape[2:]), cfg.score_threshold, cfg.iou_threshold,  # type: ignore[assignment]
                                cfg.max_detections)[0]
         contributions = None
     return dets[0].detach().numpy(), dets[1].detach().numpy(), contributions

@@ -78,7 +78,8 @@ def build_pool(cfg: TrainConfig, pcfg: PerceptionConfig):
 
 
 def _optimizer(model: nn.Module, cfg: TrainConfig) -> torch.optim.Optimizer:
-    decay, no_decay = [], []
+    decay: list[nn.Parameter] = []
+    no_decay: list[nn.Parameter] = []
     for name, p in model.named_parameters():
         (decay if p.ndim == 4 and name.endswith("weight") else no_decay).append(p)  # conv kernels only
     groups = [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
@@ -125,7 +126,7 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
         "seed": cfg.seed,
         "augment": asdict(cfg.augment),
     }
-    checkpoint.save(cfg.out, ema.model, {"data": cfg.data, "train": summary})
+    checkpoint.save(cfg.out, ema.model, {"data": cfg.data, "train": summary})  # type: ignore[arg-type]  # a FusionNet copy
     summary["out"] = str(cfg.out)
     return summary
 

@@ -38,6 +38,7 @@ POLICIES = ("static", "heuristic", "rl")
 def rl_controller(profile: Any, table_path: Path) -> Any:
     """An exploiting controller with the table at ``table_path`` (must match the profile's spaces)."""
     controller = controller_for(profile, "exploit")
+    assert controller.table is not None  # exploit learns into a table
     meta, q, visits = read_table(table_path)
     if meta.get("fingerprint") != fingerprint(controller.layout()) or q.shape != controller.table.shape:
         raise InputError(f"{table_path}: Q-table was learned for another state/action space than profile "

@@ -88,16 +88,17 @@ def render(world: World, fid: FrameId) -> Frame:
     """Render one frame exactly as the simulated driver would (same renderers, same metadata)."""
     t = max(0.0, fid.t_us / 1e6)  # a noise slot (negative) renders the static scene at t = 0
     state = world.state_at(t)
-    rng = np.random.default_rng([world.seed, MODALITIES.index(fid.modality), abs(fid.t_us), 11 + (fid.t_us < 0)])  # type: ignore[arg-type]
+    rng = np.random.default_rng([world.seed, MODALITIES.index(fid.modality), abs(fid.t_us), 11 + (fid.t_us < 0)])
     seq = fid.t_us  # unique per frame of this sensor: the feature extractor compares seq
-    if fid.modality == "rgb":  # with the exposure metadata the driver adds (illumination undoes it)
+    res = fid.resolution  # None only for radar and IMU
+    if fid.modality == "rgb" and res is not None:  # with the exposure metadata the driver adds (illumination undoes it)
         exposure = min(1.0 / fid.rate_hz, world.config.max_exposure_s)
-        meta = rgb_exposure(state, fid.resolution, exposure)
-        return Frame("rgb", t, seq, render_rgb(state, fid.resolution, exposure, rng), meta)
-    if fid.modality == "thermal":
-        return Frame("thermal", t, seq, render_thermal(state, fid.resolution, rng), {"units": "cK"})
-    if fid.modality == "depth":
-        return Frame("depth", t, seq, render_depth(state, fid.resolution, rng), {"units": "mm"})
+        meta = rgb_exposure(state, res, exposure)
+        return Frame("rgb", t, seq, render_rgb(state, res, exposure, rng), meta)
+    if fid.modality == "thermal" and res is not None:
+        return Frame("thermal", t, seq, render_thermal(state, res, rng), {"units": "cK"})
+    if fid.modality == "depth" and res is not None:
+        return Frame("depth", t, seq, render_depth(state, res, rng), {"units": "mm"})
     if fid.modality == "radar":
         return Frame("radar", t, seq, render_radar(state, fid.mode or "range", fid.rate_hz, rng))
     raise ValueError(f"no detector input for modality {fid.modality}")

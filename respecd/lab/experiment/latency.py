@@ -52,7 +52,7 @@ def measure(detector: Any, frames_for: Callable[[tuple[int, int]], dict[str, Fra
                 detector.infer(frames, attribute)
                 runs.append(time.perf_counter() - start)
             timings[attribute] = statistics.median(runs)
-        table[tuple(res)] = Latency.of(timings[False], timings[True])
+        table[(int(res[0]), int(res[1]))] = Latency.of(timings[False], timings[True])
     return table
 
 
@@ -96,5 +96,6 @@ def load(path: Path, resolutions: Iterable[tuple[int, int]]) -> dict[tuple[int, 
                                        for v in values):
             raise InputError(f"{path}: latency_ms.{key}: expected {{forward_ms: >0, attribution_ms: >0}} "
                              f"(got {entry!r})")
-        out[(w, h)] = Latency.of(values[0] / 1000.0, values[1] / 1000.0)
+        forward_ms, attribution_ms = (float(v) for v in values)  # type: ignore[arg-type]  # checked above
+        out[(w, h)] = Latency.of(forward_ms / 1000.0, attribution_ms / 1000.0)
     return out

@@ -162,8 +162,7 @@ def detect(detector: Any, frames: dict[str, Frame], previous: dict[str, Frame], 
     if before:
         extractor.sample(_percept(before))
     sample = extractor.sample(_percept(frames))
-    motion = getattr(sample, "motion_image", None) if hasattr(sample, "motion_image") else sample.frame_diff
-    return Outcome(boxes, scores, percept.conf_agg, fresh, sample.luminance, motion, sample.radar_points)
+    return Outcome(boxes, scores, percept.conf_agg, fresh, sample.luminance, sample.motion_image, sample.radar_points)
 
 
 def _percept(frames: dict[str, Frame]) -> Percept:

@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from respecd.applied import AppliedConfigs
+from respecd.clock import Clock
 from respecd.control.actions import Position
 from respecd.control.controller import Controller
 from respecd.control.features import Sample
@@ -203,6 +204,7 @@ class Rollout:
         run.loop.add(Sample(offset + t, out.conf_agg, self.mean_latency_s(configs),
                             out.luminance, out.motion, float(np.linalg.norm(imu[3:6])), out.radar_points, 0,
                             contributions))
+        assert res is not None, "the RGB camera always has a resolution"
         boxes, ignore = self.evaluator.truth(world, t, res)
         return ImageResult(out.boxes, out.scores, boxes, ignore), out.radar_points
 
@@ -231,7 +233,9 @@ class Rollout:
         return compute_s / inferences
 
     def _window_compute(self, by_modality: dict[str, SensorConfig]) -> tuple[float, float]:
-        lat = self.latency[by_modality["rgb"].resolution]
+        resolution = by_modality["rgb"].resolution
+        assert resolution is not None, "the RGB camera always has a resolution"
+        lat = self.latency[resolution]
         inferences = max(self.detector_rate(by_modality) * self.period, 1.0)
         return lat.forward_s * inferences + (lat.attribution_s - lat.forward_s), inferences
 
@@ -273,7 +277,7 @@ class _Feeder:
             offset += self.steps(piece) * period
 
     async def _observe(self, run: _PieceRun, k: int, applied: dict[str, SensorConfig],
-                       clock: LockstepClock) -> tuple[list[ImageResult], float]:
+                       clock: Clock) -> tuple[list[ImageResult], float]:
         """The samples of window ``k`` at their instants; its images and mean radar points."""
         rollout = self.rollout
         samples, period = rollout.samples, rollout.period

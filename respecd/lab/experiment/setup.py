@@ -58,5 +58,5 @@ def rgb_resolutions(controller: Any) -> list[tuple[int, int]]:
     out: list[tuple[int, int]] = []
     for slot in controller.space.slots:
         if slot.modality == "rgb":
-            out += [tuple(s) for s in slot.settings if isinstance(s, tuple)]  # type: ignore[misc]
+            out += [(int(s[0]), int(s[1])) for s in slot.settings if isinstance(s, tuple)]
     return sorted(set(out), key=lambda r: r[0] * r[1])
