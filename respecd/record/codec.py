@@ -149,9 +149,9 @@ def _image(frame: Frame, sensor: str, ts: fox.Timestamp, formats: ImageFormats) 
         encoding = "16UC1"  # millimetres, as ROS depth images
     height, width = data.shape[:2]
     pixels = np.ascontiguousarray(data.astype(data.dtype.newbyteorder("<"), copy=False))
-    msg = fox.RawImage(timestamp=ts, frame_id=sensor, width=int(width), height=int(height), encoding=encoding,
+    raw = fox.RawImage(timestamp=ts, frame_id=sensor, width=int(width), height=int(height), encoding=encoding,
                        step=int(width * data.itemsize * channels), data=pixels.tobytes())
-    return "foxglove.RawImage", msg.encode()
+    return "foxglove.RawImage", raw.encode()
 
 
 _COLORMAPS = {"inferno": cv2.COLORMAP_INFERNO}
