@@ -15,7 +15,7 @@ import io
 import mmap
 import struct
 import zlib
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -119,7 +119,8 @@ class _Walk:
             pos = end
         yield from self._cut_or_damage(pos, "the file ends without a data-end record")  # cut between records
 
-    def _damaged(self, pos: int, end: int, opcode: int, err: BaseException) -> Iterator[Damage | Cut]:
+    def _damaged(self, pos: int, end: int, opcode: int,
+                 err: BaseException) -> Generator[Damage | Cut, None, int | None]:
         """Report the bad stretch; return where reading goes on (None: nowhere)."""
         self.damaged = True
         if opcode == Opcode.CHUNK and _plausible_chunk(self.mm, pos, len(self.mm)):
