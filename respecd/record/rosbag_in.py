@@ -255,7 +255,7 @@ def _to_modality(pixels: np.ndarray, enc: str, modality: Modality) -> np.ndarray
         pixels = cv2.cvtColor(pixels, cv2.COLOR_RGBA2BGR if enc == "rgba8" else cv2.COLOR_BGRA2BGR)
     if modality == "rgb" and pixels.ndim == 2:
         if pixels.dtype != np.uint8:
-            pixels = cv2.normalize(pixels, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+            pixels = cv2.normalize(pixels, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)  # type: ignore[call-overload]
         pixels = cv2.cvtColor(pixels, cv2.COLOR_GRAY2BGR)  # the detector wants 3 channels
     if modality == "depth" and pixels.dtype == np.float32:
         pixels = np.nan_to_num(pixels * 1000.0, nan=0.0, posinf=0.0).clip(0, 65535).astype(np.uint16)  # m -> mm
@@ -274,7 +274,7 @@ def _points(msg: Any) -> np.ndarray:
 
     def column(name: str) -> np.ndarray:
         f = fields[name]
-        dtype = np.dtype(_PC2_DTYPES[f.datatype]).newbyteorder(order)
+        dtype = np.dtype(_PC2_DTYPES[f.datatype]).newbyteorder(order)  # type: ignore[arg-type]  # '<' or '>'
         cells = np.ascontiguousarray(raw[:, f.offset : f.offset + dtype.itemsize])
         return cells.view(dtype).reshape(n).astype(np.float32)
 

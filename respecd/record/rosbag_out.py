@@ -56,7 +56,7 @@ def export_rosbag2(session: SessionLog, out: Path) -> dict[str, int]:
     store = typestore()
     converter = _Converter(store)
     counts: dict[str, int] = {}
-    with Writer(out, version=ROSBAG2_VERSION, storage_plugin=StoragePlugin.MCAP) as writer:
+    with Writer(out, version=ROSBAG2_VERSION, storage_plugin=StoragePlugin.MCAP) as writer:  # type: ignore[arg-type]
         connections: dict[str, Any] = {}
         for topic, schema, log_ns, payload in session.messages():
             msgtype = MSGTYPES.get(schema.name, STRING)

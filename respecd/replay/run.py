@@ -101,13 +101,14 @@ def _base_profile(config: str | Path | None, session: Any) -> dict[str, Any]:
     the default profile's perception and controller with one sensor per mapped topic)."""
     from respecd.config import DEFAULT_PROFILE, load_profile
 
-    explicit = bool(config) and str(config) != DEFAULT_PROFILE
+    explicit = config is not None and str(config) not in ("", DEFAULT_PROFILE)
     if getattr(session, "topic_map", None) is not None:
-        base = dict(load_profile(config if explicit else DEFAULT_PROFILE).model_dump(mode="json"))
+        source = config if config is not None and explicit else DEFAULT_PROFILE
+        base = dict(load_profile(source).model_dump(mode="json"))
         named = {s["name"]: s for s in base.get("sensors", [])} if explicit else {}
         base["sensors"] = [named.get(name, {"name": name, "modality": name}) for name in session.topic_map]
         return base
-    if explicit:
+    if config is not None and explicit:
         return dict(load_profile(config).model_dump(mode="json"))
     recorded = session.profile_dict()
     if recorded is None:
