@@ -41,6 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--state-dir", metavar="DIR", help="Q-table and state (default: $STATE_DIRECTORY, else $XDG_STATE_HOME/respecd)"
     )
     parser.add_argument("--record", metavar="PATH", help="record the session to this MCAP file")
+    parser.add_argument("--foxglove", metavar="[HOST:]PORT",
+                        help="serve the session live to Foxglove over its WebSocket protocol (off by default; "
+                             "loopback unless HOST is given, e.g. 0.0.0.0:8765)")
     parser.add_argument("--replay", metavar="LOG",
                         help="replay a recorded MCAP session, or a ROS bag (rosbag2 directory or ROS 1 .bag), "
                              "through the pipeline")
@@ -113,16 +116,22 @@ def status_printer(console: bool) -> Any:
     return sink
 
 
-def make_recorder(profile: Any, path: str | None, clock: Any) -> Any:
-    """The MCAP recorder when asked for on the command line or in the profile."""
-    if path is None and not profile.recording.enabled:
+def make_recorder(profile: Any, path: str | None, clock: Any, foxglove: str | None = None) -> Any:
+    """The recorder when a log (command line or profile) or the live view is asked for."""
+    to_file = path is not None or profile.recording.enabled
+    if not to_file and foxglove is None:
         return None
     from respecd.record.recorder import Recorder
 
+    live = None
+    if foxglove is not None:
+        from respecd.record.live import LiveView, parse_address
+
+        live = LiveView(*parse_address(foxglove), name=f"respecd {profile.name}")
     config = profile.recording
     if path is not None:
         config = config.model_copy(update={"enabled": True, "path": path})
-    return Recorder(config, profile, clock)
+    return Recorder(config, profile, clock, live=live, to_file=to_file)
 
 
 async def run_live(profile: Any, args: argparse.Namespace, signals: Any, console: bool, state_dir: Any) -> int:
@@ -136,7 +145,7 @@ async def run_live(profile: Any, args: argparse.Namespace, signals: Any, console
     if args.seed is not None:
         profile = profile.model_copy(update={"controller": profile.controller.model_copy(update={"seed": args.seed})})
     context = DriverContext(seed=args.seed or 0, simulation=getattr(profile, "simulation", None))
-    recorder = make_recorder(profile, args.record, clock)
+    recorder = make_recorder(profile, args.record, clock, getattr(args, "foxglove", None))
     session = Session(profile, clock, context, policy=args.policy, state_dir=state_dir,
                       observers=[recorder] if recorder is not None else [],
                       status_sink=status_printer(console), notifier=Notifier())

@@ -127,6 +127,9 @@ class Recorder:
             path = self._segments.open(self._t0)
             self._sinks.append(self._segments)
         if self._live is not None:
+            open_live = getattr(self._live, "open", None)
+            if open_live is not None:
+                open_live()
             self._sinks.append(self._live)
         # non-daemon: interpreter exit waits for finish(), so the summary is always written
         self._thread = threading.Thread(target=self._run, name="respecd-recorder")

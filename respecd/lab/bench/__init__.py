@@ -14,4 +14,5 @@ BENCHES: dict[str, str] = {
     "scenarios": "respecd.lab.bench.scenarios",
     "sim": "respecd.lab.bench.sim",
     "replay": "respecd.lab.bench.replay",
+    "live": "respecd.lab.bench.live",
 }

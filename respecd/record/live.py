@@ -1,0 +1,108 @@
+"""``--foxglove [HOST:]PORT``: the session's channels, live, over the Foxglove WebSocket
+protocol, served by foxglove-sdk's own server (open it in Foxglove: "Open connection",
+``ws://HOST:PORT``).
+
+A sink of the recorder's worker thread, so a message is encoded once for the log and the
+live view alike, and only while somebody is watching: a channel is advertised with its first
+message, and after that a sensor frame is encoded only while a client is subscribed to it.
+Bounded at both ends: the recorder's queue drops its oldest message when the worker falls
+behind, and the server keeps at most ``BACKLOG`` messages per client, dropping the oldest
+for a slow client. Nothing here can make the control loop wait.
+
+Loopback by default: the view has no authentication, so serving another interface is a
+deliberate ``--foxglove 0.0.0.0:8765`` (see systemd/respecd.service for the unit's
+IPAddressAllow).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import structlog
+
+from respecd.errors import ConfigError
+from respecd.record.codec import Message
+from respecd.record.schemas import schema_def
+
+log = structlog.get_logger(__name__)
+
+DEFAULT_HOST = "127.0.0.1"
+BACKLOG = 64  # messages queued per client before its oldest are dropped (~2 s of the rover's images)
+
+
+def parse_address(text: str) -> tuple[str, int]:
+    """``8765``, ``127.0.0.1:8765``, ``[::1]:8765`` -> (host, port); ConfigError when malformed."""
+    host, sep, port_text = text.rpartition(":")
+    if not sep:
+        host, port_text = DEFAULT_HOST, text
+    host = host.strip("[]") or DEFAULT_HOST
+    try:
+        port = int(port_text)
+    except ValueError:
+        port = -1
+    if not 0 <= port <= 65535:
+        raise ConfigError(f"--foxglove: {text!r}: expected [HOST:]PORT with a port 0-65535, e.g. 8765 or 0.0.0.0:8765")
+    return host, port
+
+
+class LiveView:
+    """The Foxglove WebSocket server as a recorder sink (``wants``/``put``/``close``)."""
+
+    def __init__(self, host: str, port: int, name: str = "respecd") -> None:
+        self.host, self.port, self.name = host, port, name
+        self._context: Any = None
+        self._server: Any = None
+        self._channels: dict[str, Any] = {}
+        self._bridge: Any = None
+
+    def open(self) -> int:
+        """Start serving; the port really bound (``port`` 0 picks a free one).
+
+        The SDK's server listens on a private loopback port; the public one is the bridge
+        that also answers clients asking for the protocol's earlier name (``live_bridge``).
+        """
+        import foxglove
+
+        from respecd.record.live_bridge import SubprotocolBridge
+
+        self._context = foxglove.Context()
+        try:
+            self._server = foxglove.start_server(name=self.name, host="127.0.0.1", port=0,
+                                                 context=self._context, message_backlog_size=BACKLOG)
+        except Exception as err:  # the SDK raises its own error type
+            raise ConfigError(f"--foxglove: cannot start the Foxglove server: {err}") from err
+        self._bridge = SubprotocolBridge(self.host, self.port, int(self._server.port))
+        try:
+            self.port = self._bridge.start()
+        except OSError as err:
+            self._server.stop()
+            raise ConfigError(f"--foxglove {self.host}:{self.port}: cannot listen: {err.strerror or err}") from err
+        log.info("live.serving", url=f"ws://{self.host}:{self.port}", backlog=BACKLOG)
+        return self.port
+
+    def wants(self, topic: str) -> bool:
+        channel = self._channels.get(topic)
+        return channel is None or channel.has_sinks()  # unknown yet: advertise it with this message
+
+    def put(self, message: Message, log_ns: int, t: float) -> None:
+        channel = self._channels.get(message.topic)
+        if channel is None:
+            channel = self._channels[message.topic] = self._channel(message)
+        channel.log(message.payload, log_time=log_ns)
+
+    def _channel(self, message: Message) -> Any:
+        import foxglove
+
+        definition = schema_def(message.schema)
+        schema = foxglove.Schema(name=definition.name, encoding=definition.encoding, data=definition.data)
+        return foxglove.Channel(message.topic, schema=schema, message_encoding=definition.message_encoding,
+                                context=self._context, metadata=dict(message.channel_meta))
+
+    def close(self) -> None:
+        bridge, self._bridge = self._bridge, None
+        if bridge is not None:
+            bridge.stop()
+        server, self._server = self._server, None
+        if server is not None:
+            server.stop()
+            log.info("live.stopped")
