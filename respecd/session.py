@@ -348,5 +348,9 @@ class Session:
         action_name = None
         if decision is not None and hasattr(self.controller, "describe_action"):
             action_name = self.controller.describe_action(decision.action)
-        return snapshot(self.clock.now(), self.drivers, self.synchronizer.last_stats, drops, percept, decision,
-                        action_name, self.applied)
+        fields = snapshot(self.clock.now(), self.drivers, self.synchronizer.last_stats, drops, percept, decision,
+                          action_name, self.applied)
+        for observer in self.observers:
+            if hasattr(observer, "recording_status"):
+                fields["recording"] = observer.recording_status()
+        return fields

@@ -97,6 +97,17 @@ def format_line(fields: Mapping[str, Any], modalities: Mapping[str, str]) -> str
             f"{MODALITY_ABBREV[k]}={v:.2f}" for k, v in fields["contributions"].items() if k in MODALITY_ABBREV
         )
         parts.append(f"contrib {contrib}")
+    if "recording" in fields:
+        parts.append(_recording(fields["recording"]))
     if "action" in fields:
         parts.append(f"action {fields['action']} r={fields['reward']:+.2f}")
     return " | ".join(parts)
+
+
+def _recording(r: Mapping[str, Any]) -> str:
+    """What the recorder really has on disk, and why it is not recording if it is not."""
+    if r["state"] not in ("recording", "paused"):
+        return f"rec {r['state']}"
+    paused = f" PAUSED ({r['reason']})" if r["state"] == "paused" else ""
+    lost = f" lost={r['lost']}" if r.get("lost") else ""
+    return f"rec{paused} {r['mib']:g}MiB {r['messages']}msg{lost}"

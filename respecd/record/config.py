@@ -64,6 +64,17 @@ class RecordingConfig(StrictModel):
             "the scale is in the channel metadata. none: only the exact image."
         ),
     )
+    min_free_mib: float = Field(
+        256.0, ge=0, description="Free space (MiB) recording leaves on the disk: below it the file is finished "
+        "and recording pauses, resuming in a new file once there is room (0: write until the disk refuses).",
+    )
+    max_bytes: int = Field(
+        0, ge=0, description="Most bytes of recordings (every session this path names) kept on disk; past it the "
+        "oldest session's files are deleted first, never the file being written (0: no limit).",
+    )
+    delete_oldest: bool = Field(
+        False, description="Below min_free_mib, delete the oldest recordings (oldest session first) before pausing.",
+    )
     queue_size: int = Field(
         256, ge=8, le=65536, description="Messages waiting for the writer thread before the oldest is dropped."
     )
