@@ -95,7 +95,7 @@ def test_a_refused_write_pauses_once_keeps_what_was_written_and_resumes(
     assert open_log(segments.paths[0]).truncated  # cut back to its last complete chunk: readable
     assert _on_disk(segments.paths) == segments.messages  # the count is what is really on disk
     assert segments.messages + segments.lost == 450 and segments.lost > 0
-    assert segments.bytes == sum(p.stat().st_size for p in segments.paths)
+    assert segments.on_disk_bytes == sum(p.stat().st_size for p in segments.paths)
 
 
 def test_below_the_free_space_floor_nothing_is_started(tmp_path: Path) -> None:

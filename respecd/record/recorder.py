@@ -192,7 +192,7 @@ class Recorder:
         if thread.is_alive():
             log.error("record.close_timeout", pending=len(self._queue))
         lost = self._segments.lost if self._segments else 0
-        mib = round(self._segments.bytes / 2**20, 1) if self._segments else 0.0
+        mib = round(self._segments.on_disk_bytes / 2**20, 1) if self._segments else 0.0
         log.info("record.closed", paths=[str(p) for p in self.paths], messages=self.written, mib=mib,
                  dropped=self.dropped, lost=lost, encode_errors=self.errors)
 

@@ -31,6 +31,7 @@ from mcap.records import Chunk, DataEnd, Footer, McapRecord, Message
 MAGIC = b"\x89MCAP0\r\n"
 _RECORD_HEAD = struct.Struct("<BQ")  # opcode, length
 _CHUNK_HEAD = struct.Struct("<QQQII")  # start, end, uncompressed size, crc, compression length
+_MESSAGE_HEAD = struct.Struct("<HIQQ")  # channel id, sequence, log time, publish time
 _FOOTER_LEN = 1 + 8 + 20
 MAX_INFLATION = 1024  # a chunk claiming more than this x its compressed size is damaged
 _COMPRESSIONS = ("", "zstd", "lz4")
@@ -104,7 +105,7 @@ class _Walk:
             try:
                 if end > size:
                     raise _Bad(f"record of {length} B runs past the end of the file")
-                records = _read(opcode, mm[pos + _RECORD_HEAD.size:end])
+                records = _read_at(mm, opcode, pos, end)
             except (_Bad, *BAD_BYTES) as err:
                 resume = yield from self._damaged(pos, end, opcode, err)
                 if resume is None:
@@ -147,15 +148,32 @@ class _Walk:
             yield Damage(0, pos, "data section CRC mismatch: damage outside the chunks (header, metadata or index)")
 
 
-def _read(opcode: int, body: bytes) -> list[McapRecord]:
+def _read_at(mm: mmap.mmap, opcode: int, pos: int, end: int) -> list[McapRecord]:
+    """The record at ``pos`` (a chunk: its records). A chunk is parsed in place, without
+    copying its compressed bytes; only bytes objects leave (the mmap can then be closed)."""
+    if opcode != Opcode.CHUNK:
+        return [_read(opcode, mm[pos + _RECORD_HEAD.size:end])]
+    with memoryview(mm) as view, view[pos + _RECORD_HEAD.size:end] as body:
+        return chunk_records(_chunk(body))
+
+
+def _read(opcode: int, body: bytes) -> McapRecord:
     reader = _READERS.get(opcode)
     if reader is None:
         raise _Bad(f"unknown record type {opcode:#04x}")  # respecd writes none: it is a flipped opcode
     stream = ReadDataStream(_Strict(body))
-    record = reader.read(stream, len(body)) if reader is Message else reader.read(stream)
-    if isinstance(record, Chunk):
-        return chunk_records(record)
-    return [record]
+    return reader.read(stream, len(body)) if reader is Message else reader.read(stream)
+
+
+def _chunk(body: memoryview) -> Chunk:
+    start, end, uncompressed_size, crc, name_len = _CHUNK_HEAD.unpack_from(body, 0)
+    at = _CHUNK_HEAD.size + name_len
+    compression = bytes(body[_CHUNK_HEAD.size:at]).decode()
+    data_len, = struct.unpack_from("<Q", body, at)
+    if at + 8 + data_len != len(body):
+        raise _Bad(f"chunk data of {data_len} B does not fill its {len(body)}-B record")
+    return Chunk(compression=compression, data=body[at + 8:], message_end_time=end,  # type: ignore[arg-type]
+                 message_start_time=start, uncompressed_crc=crc, uncompressed_size=uncompressed_size)
 
 
 def chunk_records(chunk: Chunk) -> list[McapRecord]:
@@ -170,20 +188,26 @@ def chunk_records(chunk: Chunk) -> list[McapRecord]:
     if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
         raise _Bad("CRC mismatch")
     out: list[McapRecord] = []
-    pos = 0
-    while pos < len(data):
+    pos, size = 0, len(data)
+    while pos < size:
         opcode, length = _RECORD_HEAD.unpack_from(data, pos)
-        body = data[pos + _RECORD_HEAD.size:pos + _RECORD_HEAD.size + length]
-        if len(body) < length:
+        start, pos = pos + _RECORD_HEAD.size, pos + _RECORD_HEAD.size + length
+        if pos > size:
             raise _Bad("a record runs past the end of its chunk")
-        if opcode in (Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE):
-            out.extend(_read(opcode, body))
-        pos += _RECORD_HEAD.size + length
+        if opcode == Opcode.MESSAGE:  # the hot path: parsed here, one copy of the payload
+            if length < _MESSAGE_HEAD.size:
+                raise _Bad(f"message record of {length} B")
+            channel_id, sequence, log_time, publish_time = _MESSAGE_HEAD.unpack_from(data, start)
+            out.append(Message(channel_id=channel_id, log_time=log_time, publish_time=publish_time,
+                               sequence=sequence, data=bytes(data[start + _MESSAGE_HEAD.size:pos])))
+        elif opcode in (Opcode.SCHEMA, Opcode.CHANNEL):
+            out.append(_read(opcode, bytes(data[start:pos])))
     return out
 
 
-def _decompress(chunk: Chunk) -> bytes:
+def _decompress(chunk: Chunk) -> bytes | memoryview:
     if chunk.compression == "zstd":
+        # a decompressor per chunk: one object may not be shared by the replay's reader threads
         return zstandard.ZstdDecompressor().decompress(chunk.data, max_output_size=chunk.uncompressed_size)
     if chunk.compression == "lz4":
         return lz4.frame.decompress(chunk.data)
@@ -196,7 +220,7 @@ def _next_chunk(mm: mmap.mmap, start: int) -> int | None:
     while (at := mm.find(bytes([Opcode.CHUNK]), at)) >= 0:
         if _plausible_chunk(mm, at, size):
             try:
-                _read(Opcode.CHUNK, mm[at + _RECORD_HEAD.size:at + _RECORD_HEAD.size + _length(mm, at)])
+                _read_at(mm, Opcode.CHUNK, at, at + _RECORD_HEAD.size + _length(mm, at))
                 return at
             except (_Bad, *BAD_BYTES):
                 pass

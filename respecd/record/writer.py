@@ -129,13 +129,13 @@ class SegmentWriter:
         self._next_retry = 0.0
 
     @property
-    def bytes(self) -> int:
+    def on_disk_bytes(self) -> int:
         """Bytes of this session on disk (finished segments + the open one's complete chunks)."""
         return self._finished_bytes + self._good
 
     def status(self) -> dict[str, Any]:
         return {"state": self.state, "messages": self.messages, "lost": self.lost,
-                "mib": round(self.bytes / MIB, 1), "reason": self.reason}
+                "mib": round(self.on_disk_bytes / MIB, 1), "reason": self.reason}
 
     def open(self, t: float) -> Path | None:
         """Start the next segment at session time ``t`` (s); None (paused) without room for it."""
@@ -279,7 +279,7 @@ class SegmentWriter:
             return
         self.state, self.reason = "paused", reason
         fields = {"path": str(self.paths[-1]) if self.paths else None, "reason": reason, "written": self.messages,
-                  "written_mib": round(self.bytes / MIB, 1), "lost": self.lost,
+                  "written_mib": round(self.on_disk_bytes / MIB, 1), "lost": self.lost,
                   "resumes": f"when {self._resume_at / MIB:.0f} MiB are free (checked every {self._retry_s:g}+ s)"}
         if error:
             log.error("record.paused", **fields)
