@@ -23,3 +23,18 @@ def test_python_dash_m_respecd_is_the_cli() -> None:
     assert done.returncode == 0
     assert done.stdout.startswith("usage: respecd")
     assert "check-config" in done.stdout
+
+
+def test_flags_that_do_not_apply_are_errors() -> None:
+    for args, message in [(["--report", "r.json", "--duration", "1"], "--report: only with --replay"),
+                          (["--speed", "max", "--topics", "rgb=/x"], "--speed, --topics: only with --replay"),
+                          (["--replay", "x.mcap", "--record", "y.mcap"], "--record: only for the live daemon")]:
+        done = _respecd(*args)
+        assert done.returncode == 2 and message in done.stderr, done.stderr
+        assert "Traceback" not in done.stderr
+
+
+def test_profile_is_the_flag_and_config_its_old_name() -> None:
+    for flag in ("--profile", "--config"):
+        done = _respecd(flag, "/nonexistent/p.yaml", "--duration", "1")
+        assert done.returncode == 2 and "/nonexistent/p.yaml" in done.stderr, done.stderr

@@ -29,8 +29,12 @@ def main(args: argparse.Namespace) -> int:
     figures.setdefault(
         "machine", {"cpu": platform.processor() or platform.machine(), "python": platform.python_version()}
     )
-    for key, value in figures.items():
-        print(f"{key}: {json.dumps(value) if isinstance(value, (dict, list)) else value}")
+    module = importlib.import_module(BENCHES[args.bench])
+    if hasattr(module, "summary"):  # a short human summary; the figures go to --json
+        print(module.summary(figures))
+    else:
+        for key, value in figures.items():
+            print(f"{key}: {json.dumps(value) if isinstance(value, (dict, list)) else value}")
     if args.json:
         out = Path(args.json)
         out.parent.mkdir(parents=True, exist_ok=True)

@@ -27,7 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rgb", default="640x360", help="sim: RGB resolution WxH (default 640x360)")
     parser.add_argument("--scale", type=float, default=0.5, help="LLVIP: image scale (default 0.5 of 1280x1024)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
-    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.add_argument("--no-progress", "--quiet", dest="quiet", action="store_true",
+                        help="no progress bars (--quiet is the old name)")
 
 
 def _resolution(text: str) -> tuple[int, int]:

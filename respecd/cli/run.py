@@ -20,10 +20,11 @@ POLICIES = ("learn", "exploit", "static", "heuristic")
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
-        "--config",
+        "--profile", "--config",
+        dest="config",
         default=DEFAULT_PROFILE,
         metavar="FILE",
-        help=f"profile YAML (default: the embedded {DEFAULT_PROFILE}, a simulated rover)",
+        help=f"profile YAML (default: the embedded {DEFAULT_PROFILE}, a simulated rover); --config is the old name",
     )
     parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: run until SIGTERM)")
     parser.add_argument(
@@ -33,6 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="log format (auto: JSON lines when stdout is not a terminal)",
     )
     parser.add_argument("--log-level", default="info", choices=("debug", "info", "warning", "error"))
+    parser.add_argument("-v", "--verbose", action="store_true",
+                        help="debug level, and on a terminal also the per-decision and per-apply lines")
     parser.add_argument(
         "--seed", type=int, help="seed for the simulator and the controller (default: the profile's, else 0)"
     )
@@ -53,9 +56,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default: guessed from message types, and the guess printed)")
     parser.add_argument(
         "--speed",
-        default="1",
         choices=("1", "2", "max"),
-        help="replay speed: real time, twice, or as fast as possible in lockstep (deterministic)",
+        help="replay speed: real time (default), twice, or as fast as possible in lockstep (deterministic)",
     )
     parser.add_argument("--report", metavar="OUT.json", help="replay: write a report (JSON + PNG timeline)")
     parser.add_argument("--save-table", metavar="PATH",
@@ -68,8 +70,9 @@ def main(args: argparse.Namespace) -> int:
     from respecd.logs import configure_logging
     from respecd.signals import StopSignals
 
+    check_flags(args)
     with StopSignals() as signals:
-        fmt = configure_logging(args.log_format, args.log_level)
+        fmt = configure_logging(args.log_format, args.log_level, verbose=getattr(args, "verbose", False))
         if args.replay:
             from respecd.replay.run import run_replay
 
@@ -78,6 +81,22 @@ def main(args: argparse.Namespace) -> int:
         state_dir = prepare_state_dir(args.state_dir)
         preflight(loaded, state_dir, args.policy)
         return asyncio.run(run_live(loaded.model, args, signals, console=fmt == "console", state_dir=state_dir))
+
+
+REPLAY_ONLY = ("speed", "report", "topics", "save_table")
+LIVE_ONLY = ("record", "foxglove")
+
+
+def check_flags(args: argparse.Namespace) -> None:
+    """A flag that does nothing in this mode is an error, not silently ignored."""
+    given = [name for name in REPLAY_ONLY if getattr(args, name, None) is not None]
+    if not args.replay and given:
+        flags = ", ".join(f"--{n.replace('_', '-')}" for n in given)
+        raise ConfigError(f"{flags}: only with --replay LOG (this runs the live daemon)")
+    given = [name for name in LIVE_ONLY if getattr(args, name, None) is not None]
+    if args.replay and given:
+        flags = ", ".join(f"--{n.replace('_', '-')}" for n in given)
+        raise ConfigError(f"{flags}: only for the live daemon, not with --replay")
 
 
 def prepare_state_dir(cli_value: str | None) -> Any:
@@ -105,9 +124,13 @@ def preflight(loaded: Any, state_dir: Any, policy: str | None) -> None:
 
 def status_printer(console: bool) -> Any:
     if console:
+        from respecd.terminal import TERMINAL
 
         def sink(fields: dict[str, Any], line: str) -> None:
-            print(line, flush=True)
+            if sys.stdout.isatty():
+                TERMINAL.status(line)  # refreshed in place, log lines scroll above it
+            else:
+                print(line, flush=True)
     else:
 
         def sink(fields: dict[str, Any], line: str) -> None:
@@ -149,7 +172,16 @@ async def run_live(profile: Any, args: argparse.Namespace, signals: Any, console
     session = Session(profile, clock, context, policy=args.policy, state_dir=state_dir,
                       observers=[recorder] if recorder is not None else [],
                       status_sink=status_printer(console), notifier=Notifier())
-    await session.run(duration=args.duration, stop=stop)
+    from respecd.native import StderrRelay
+    from respecd.terminal import TERMINAL
+
+    relay = StderrRelay()  # OpenCV's own warnings become log events
+    relay.start()
+    try:
+        await session.run(duration=args.duration, stop=stop)
+    finally:
+        relay.stop()
+        TERMINAL.close()
     if session.lingering:
         log.warning("abandoning_inflight_work", tasks=session.lingering)
     return 0

@@ -40,7 +40,7 @@ log = structlog.get_logger(__name__)
 
 def run_replay(args: argparse.Namespace, signals: Any = None) -> int:
     """Entry point from ``respecd --replay``; InputError/ConfigError become exit 2."""
-    report = replay(args.replay, config=args.config, policy=args.policy, speed=str(getattr(args, "speed", "max")),
+    report = replay(args.replay, config=args.config, policy=args.policy, speed=str(getattr(args, "speed", None) or "1"),
                     seed=args.seed or 0, duration=args.duration, report=args.report, state_dir=args.state_dir,
                     save_table=getattr(args, "save_table", None), signals=signals,
                     topics=getattr(args, "topics", None))

@@ -35,7 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--latency", type=Path, metavar="FILE",
                         help="use the detector latency of a past run (its --json result) instead of measuring it: "
                              "repeats that run's compute figures and load states")
-    parser.add_argument("--progress", action="store_true", help="show a progress bar")
+    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                        help="progress bar on stderr (default: when stderr is a terminal)")
 
 
 def _table_path(args: argparse.Namespace) -> Path:
@@ -102,11 +103,30 @@ def _prepare_sim(args: argparse.Namespace, profile: Any, detector: Any) -> tuple
 
 
 def _bar(args: argparse.Namespace, total: int) -> Any:
-    if not args.progress:
+    import sys
+
+    if not (sys.stderr.isatty() if args.progress is None else args.progress):
         return None
     from tqdm import tqdm
 
     return tqdm(total=total, desc="bench scenarios", unit="window")
+
+
+def summary(result: dict[str, Any]) -> str:
+    """What a person reads after a run: the whole-run figures per policy and the headline."""
+    lines = [f"{'policy':<10} {'mAP@0.5':>8} {'compute ms/s':>13} {'energy J':>9} {'bandwidth MB/s':>15}"]
+    for policy, v in result.get("overall", {}).items():
+        m = "n/a" if v.get("map50") is None else f"{v['map50']:.3f}"
+        lines.append(f"{policy:<10} {m:>8} {v['compute_ms_per_s']:>13.0f} {v['energy_j']:>9.1f} "
+                     f"{v['bandwidth_bps'] / 1e6:>15.2f}")
+    for name, v in result.get("summary", {}).items():
+        reduction, drop = v["compute_reduction"], v["map50_drop"]
+        compute = "n/a" if reduction is None else f"{abs(100 * reduction):.1f} % {'less' if reduction >= 0 else 'more'}"
+        accuracy = "n/a" if drop is None else f"{abs(drop):.3f} {'lower' if drop >= 0 else 'higher'}"
+        lines.append(f"{name.replace('_', ' ')}: {compute} compute, mAP@0.5 {accuracy}")
+    lines.append(f"{len(result.get('scenarios', []))} scenario runs in {result.get('wall_s', 0):.0f} s; "
+                 "all figures: --json OUT (and --markdown, --figure)")
+    return "\n".join(lines)
 
 
 def _write_outputs(args: argparse.Namespace, result: dict[str, Any]) -> None:

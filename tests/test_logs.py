@@ -1,0 +1,95 @@
+"""Log lines: syslog priorities when stdout is the journal, a refreshed status line on a
+terminal with log lines above it, chatty per-step lines only with -v, OpenCV's own
+warnings and other libraries' logging as our events."""
+
+from __future__ import annotations
+
+import io
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from respecd.terminal import CLEAR_LINE, Terminal
+
+SCRIPT = """
+import logging, sys, warnings
+import structlog
+from respecd.logs import configure_logging
+configure_logging("json", "info")
+log = structlog.get_logger("t")
+log.debug("hidden"); log.info("started"); log.warning("slow"); log.error("broken")
+logging.getLogger("foxglove.websocket").warning("client dropped")
+warnings.warn("old API", DeprecationWarning)
+"""
+
+
+def _run(script: str, out: Path, env: dict[str, str]) -> list[str]:
+    with open(out, "w") as stdout:
+        st = os.fstat(stdout.fileno())
+        env = {**os.environ, **{k: v.format(dev=st.st_dev, ino=st.st_ino) for k, v in env.items()}}
+        subprocess.run([sys.executable, "-c", script], stdout=stdout, env=env, check=True, timeout=60)
+    return out.read_text().splitlines()
+
+
+def test_under_systemd_every_line_starts_with_its_syslog_priority(tmp_path: Path) -> None:
+    lines = _run(SCRIPT, tmp_path / "out", {"JOURNAL_STREAM": "{dev}:{ino}"})
+    assert [line[:3] for line in lines] == ["<6>", "<4>", "<3>", "<4>", "<4>"]
+    events = [json.loads(line[3:]) for line in lines]
+    assert [e["event"] for e in events] == ["started", "slow", "broken", "foxglove.websocket", "warning"]
+    assert events[3]["message"] == "client dropped" and "old API" in events[4]["message"]
+
+
+def test_without_the_journal_the_json_stream_is_unchanged(tmp_path: Path) -> None:
+    lines = _run(SCRIPT, tmp_path / "out", {"JOURNAL_STREAM": "1:2"})  # another stream: not ours
+    assert all(line.startswith("{") for line in lines)
+
+
+def test_opencv_warnings_become_events(tmp_path: Path) -> None:
+    script = """
+import cv2, structlog
+from respecd.logs import configure_logging
+from respecd.native import StderrRelay
+configure_logging("json", "info")
+relay = StderrRelay(); relay.start()
+cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_WARNING)
+cv2.VideoCapture(99)
+import sys; print("plain text on stderr", file=sys.stderr, flush=True)
+relay.stop()
+"""
+    out = tmp_path / "out"
+    with open(out, "w") as stdout:
+        done = subprocess.run([sys.executable, "-c", script], stdout=stdout, stderr=subprocess.PIPE, text=True,
+                              timeout=60)
+    events = [json.loads(line) for line in out.read_text().splitlines()]
+    opencv = [e for e in events if e["event"] == "opencv"]
+    assert opencv and opencv[0]["level"] == "warning" and "open" in opencv[0]["message"]
+    assert "[ WARN" not in done.stderr and "plain text on stderr" in done.stderr
+
+
+def test_status_line_is_redrawn_and_log_lines_go_above_it() -> None:
+    stream = io.StringIO()
+    terminal = Terminal(stream)
+    terminal.status("t=1s rgb 30Hz")
+    terminal.log_line("warning: radar reconnecting")
+    terminal.status("t=2s rgb 30Hz")
+    terminal.close()
+    assert stream.getvalue() == (f"{CLEAR_LINE}t=1s rgb 30Hz{CLEAR_LINE}warning: radar reconnecting\n"
+                                 f"t=1s rgb 30Hz{CLEAR_LINE}t=2s rgb 30Hz\n")
+
+
+def test_per_decision_lines_are_for_machines_or_verbose(tmp_path: Path) -> None:
+    script = """
+import structlog, sys
+from respecd.logs import configure_logging
+configure_logging("console", "info", verbose=len(sys.argv) > 1)
+structlog.get_logger().info("decision", action=3); structlog.get_logger().info("pipeline_up")
+"""
+    quiet = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60).stdout
+    loud = subprocess.run([sys.executable, "-c", script, "-v"], capture_output=True, text=True, timeout=60).stdout
+    assert "pipeline_up" in quiet and "decision" not in quiet
+    assert "decision" in loud
+    machine = subprocess.run([sys.executable, "-c", script.replace('"console"', '"json"')], capture_output=True,
+                             text=True, timeout=60).stdout
+    assert '"event": "decision"' in machine  # the JSON stream keeps them
