@@ -57,6 +57,24 @@ def test_pickled_code_is_refused(tmp_path: Path) -> None:
         checkpoint.load(str(path))
 
 
+def test_a_corrupt_checkpoint_never_suggests_loading_it_as_code(tmp_path: Path) -> None:
+    good = tmp_path / "good.pt"
+    torch.save({"format": checkpoint.FORMAT, "payload": Path("/")}, good)
+    data = good.read_bytes()
+    flipped = bytearray(data)
+    flipped[len(data) // 3] ^= 0xFF
+    for name, content in {"object.pt": data, "cut.pt": data[: len(data) // 2], "flipped.pt": bytes(flipped)}.items():
+        path = tmp_path / name
+        path.write_bytes(content)
+        with pytest.raises(ConfigError) as info:
+            checkpoint.load(str(path))
+        message = str(info.value)
+        assert f"{name}: not a loadable torch checkpoint (" in message
+        for advice in ("weights_only", "safe_globals", "trust", "\x1b"):
+            assert advice not in message, (name, message)
+    assert "PosixPath" in str(pytest.raises(ConfigError, checkpoint.load, str(good)).value)  # says what it holds
+
+
 def test_mismatched_spec_names_the_field(tmp_path: Path) -> None:
     path = tmp_path / "tiny.pt"
     checkpoint.save(path, FusionNet(TINY))

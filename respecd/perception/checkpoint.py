@@ -9,6 +9,9 @@ from __future__ import annotations
 
 import json
 import os
+import pickle
+import re
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -57,13 +60,29 @@ def read(path: Path) -> dict[str, Any]:
     if not path.is_file():
         raise ConfigError(f"{path}: no such checkpoint file")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        with warnings.catch_warnings():  # torch warns about pickle protocols of files it then refuses
+            warnings.simplefilter("ignore")
+            payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch raises RuntimeError, UnpicklingError, EOFError... for bad files
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise ConfigError(f"{path}: not a loadable torch checkpoint ({first})") from err
+        raise ConfigError(f"{path}: not a loadable torch checkpoint ({load_problem(err)})") from err
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise ConfigError(f"{path}: not a respecd fusion checkpoint (expected format {FORMAT!r})")
     return payload
+
+
+def load_problem(err: BaseException) -> str:
+    """Why torch refused a file, in our words. Never torch's own advice: it suggests re-running with
+    ``weights_only=False`` or allow-listing classes, which would run code from an untrusted file."""
+    text = str(err)
+    if isinstance(err, pickle.UnpicklingError) or "Weights only load failed" in text:
+        found = re.search(r"Unsupported global: GLOBAL ([\w.]+)", text)
+        what = f", e.g. {found.group(1)}" if found else ""
+        return (f"it holds Python objects{what}, not only tensors and plain data; respecd loads checkpoints "
+                "as data and never runs code from them: re-export it with respecd train or checkpoint.save")
+    if "PytorchStreamReader" in text or isinstance(err, (EOFError, KeyError)):
+        return "damaged or truncated: not a readable torch zip archive"
+    first = text.strip().split(". ")[0].splitlines()[0] if text.strip() else type(err).__name__
+    return type(err).__name__ if "weights_only" in first or "safe_globals" in first else first
 
 
 def load(source: str, expected: ModelSpec | None = None, map_location: str = "cpu") -> tuple[FusionNet, dict]:
