@@ -15,4 +15,5 @@ BENCHES: dict[str, str] = {
     "sim": "respecd.lab.bench.sim",
     "replay": "respecd.lab.bench.replay",
     "live": "respecd.lab.bench.live",
+    "soak": "respecd.lab.bench.soak",
 }
