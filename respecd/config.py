@@ -68,7 +68,10 @@ class TelemetryConfig(StrictModel):
         "auto", description="Read Jetson INA3221 power rails from sysfs when present ('off': use the power model)."
     )
     watchdog_stall_s: float = Field(
-        5.0, gt=0, description="Seconds without bundles after which the systemd watchdog is no longer fed."
+        5.0,
+        gt=0,
+        description="Seconds the synchronizer may go without a tick, or perception hold input without output, "
+        "before the systemd watchdog is no longer fed; a sensor this long without frames is listed as degraded.",
     )
 
 

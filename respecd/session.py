@@ -29,6 +29,7 @@ from respecd.applied import AppliedConfigs
 from respecd.clock import Clock
 from respecd.drivers import driver_class
 from respecd.drivers.base import Driver, DriverContext
+from respecd.liveness import Liveness, status_text
 from respecd.messages import Bundle, Decision, Frame, Percept, SensorConfig
 from respecd.queues import DropOldestQueue
 from respecd.sdnotify import Notifier
@@ -120,6 +121,12 @@ class Session:
         self._closers: list[tuple[str, Callable[[], Any]]] = []  # in start order
         self._tasks: dict[str, asyncio.Task[None]] = {}  # in start order
         self._running = False
+        self._withheld: list[str] = []  # why the watchdog is not fed, as last logged
+        controller = profile.controller
+        self.liveness = Liveness(clock, profile.telemetry.watchdog_stall_s,
+                                 controller.decision_period_s + controller.apply_timeout_s)
+        for kind in ("frame", "bundle", "inference", "percept", "decision", "tick"):
+            getattr(self.hooks, kind).append(getattr(self.liveness, f"on_{kind}"))
         for observer in observers or []:
             self.attach(observer)
 
@@ -220,6 +227,8 @@ class Session:
             controller = self.controller
             self._spawn("controller", supervise("controller", lambda: controller.run(self.percepts)))
         self._spawn("status", self._status_loop())
+        if self.notifier.enabled:
+            self._spawn("watchdog", self._watchdog_loop())
 
     async def stop(self) -> None:
         """Cancel every stage, then close components in reverse start order — within ~2 s.
@@ -324,18 +333,39 @@ class Session:
 
     async def _status_loop(self) -> None:
         period = self.profile.telemetry.status_period_s
-        stall_s = self.profile.telemetry.watchdog_stall_s
         next_t = self.clock.now() + period
         while True:
             await self.clock.sleep_until(next_t)
             next_t += period
             fields = self.status_fields()
+            fields["degraded"] = self.liveness.degraded(self.drivers, self.applied, fields.get("recording"))
+            fields["stalled"] = self.stalls()
             line = format_line(fields, {n: d.modality for n, d in self.drivers.items()})
+            line = status_text(line, fields["degraded"], fields["stalled"])
             if self.status_sink is not None:
                 self.status_sink(fields, line)
             self.notifier.status(line)
-            if self.last_flow_t is not None and self.clock.now() - self.last_flow_t < stall_s:
+
+    def stalls(self) -> list[str]:
+        """Why the watchdog must not be fed (respecd.liveness); empty while alive and supervising."""
+        stages = ("perception", "controller") if self.controller is not None else ("perception",)
+        return self.liveness.stalls(self._tasks, stages)
+
+    async def _watchdog_loop(self) -> None:
+        """WATCHDOG=1 at least every second (at half of WatchdogSec at most) while the loop is
+        alive and supervising; sensors being absent does not matter (STATUS= says so)."""
+        period = min(self.notifier.watchdog_interval_s() or 1.0, 1.0)
+        while True:
+            stalls = self.stalls()
+            if not stalls:
                 self.notifier.watchdog()
+            if stalls != self._withheld:  # log once per change, not once per second
+                if stalls:
+                    log.error("watchdog_withheld", reasons=stalls)
+                else:
+                    log.info("watchdog_fed_again", after=self._withheld)
+                self._withheld = stalls
+            await asyncio.sleep(period)  # wall time: what systemd's WatchdogSec counts
 
     def status_fields(self) -> dict[str, Any]:
         drops = {name: q.dropped for name, q in self.frame_queues.items() if q.dropped}
