@@ -57,6 +57,7 @@ class ControlLoop:
         self.probe = probe
         self.window = Window(self.config.window_s, self.config.latency_budget_s)
         self.last: Decision | None = None
+        self.on_sample: list[Callable[[Sample], None]] = []  # each sample as the window gets it
         self.on_decision: list[Callable[[Decision], None]] = []  # after the sensors answered
         self.on_window: list[Callable[[], None]] = []  # a window closed: perception may attribute next
         self.after_decision: Callable[[Decision], Awaitable[None]] | None = None  # e.g. save the Q-table
@@ -68,6 +69,8 @@ class ControlLoop:
     def add(self, sample: Sample) -> None:
         """One percept's features (or a cached outcome's), stamped with when it arrived."""
         self.window.add(sample)
+        for hook in self.on_sample:
+            hook(sample)
 
     async def run(self) -> None:
         """Forever: sleep to the next decision time on the clock, decide. Cancel to stop."""

@@ -164,16 +164,20 @@ class Rollout:
         return applied
 
     def run(self, controller: Controller, pieces: Iterable[Piece],
-            on_window: Callable[[WindowRecord], None] | None = None) -> list[WindowRecord]:
-        """Every piece in sequence under ``controller``; one record per decision window."""
+            on_window: Callable[[WindowRecord], None] | None = None,
+            attach: Callable[[ControlLoop], None] | None = None) -> list[WindowRecord]:
+        """Every piece in sequence under ``controller``; one record per decision window.
+        ``attach`` sees the control loop before it runs (to observe its hooks)."""
         with asyncio.Runner(loop_factory=LockstepLoop) as runner:
-            return runner.run(self._run(controller, list(pieces), on_window))
+            return runner.run(self._run(controller, list(pieces), on_window, attach))
 
-    async def _run(self, controller: Controller, pieces: list[Piece],
-                   on_window: Callable[[WindowRecord], None] | None) -> list[WindowRecord]:
+    async def _run(self, controller: Controller, pieces: list[Piece], on_window: Callable[[WindowRecord], None] | None,
+                   attach: Callable[[ControlLoop], None] | None) -> list[WindowRecord]:
         clock = LockstepClock(0.0)
         applied = AppliedConfigs(self.starting(controller))
         loop = ControlLoop(controller, clock, SimulatedSensors(self.caps), applied, ModelledLoad(self, applied))
+        if attach is not None:
+            attach(loop)
         feeder = _Feeder(self, loop, on_window)
         tasks = [asyncio.create_task(loop.run(), name="control-loop"),
                  asyncio.create_task(feeder.run(pieces), name="rollout-samples")]
