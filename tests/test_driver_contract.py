@@ -41,6 +41,7 @@ class Rig:
     request: SensorConfig  # a valid change from the start configuration
     out_of_range: SensorConfig  # a request it must clamp and say so
     feed: Callable[[Driver], None] = lambda driver: None  # start the fake device's stream, if it needs it
+    device: Callable[[], None] = lambda: None  # plug the fake device in (before ``make``; once)
 
 
 def _sim(tmp_path: Path) -> Iterator[Rig]:
@@ -108,17 +109,20 @@ def _realsense(tmp_path: Path) -> Iterator[Rig]:
 
     devices: list[Any] = []
 
+    def device() -> None:
+        if not devices:
+            devices.append(SoftwareD435())
+
     def make(enabled: bool) -> Driver:
-        device = SoftwareD435()
-        devices.append(device)
+        device()
         config = RealSenseConfig(name="depth", resolution=(640, 480), rate_hz=10.0, enabled=enabled)
-        return RealSenseDriver(config, MonotonicClock(), device=device.device)
+        return RealSenseDriver(config, MonotonicClock(), device=devices[-1].device)
 
     def feed(driver: Driver) -> None:
         devices[-1].feed(driver, "depth")
 
     yield Rig(make, unplugged, SensorConfig("depth", rate_hz=5.0, resolution=(640, 360)),
-              SensorConfig("depth", rate_hz=90.0, resolution=(1280, 720)), feed)
+              SensorConfig("depth", rate_hz=90.0, resolution=(1280, 720)), feed, device)
     for device in devices:
         device.close()
 
@@ -132,9 +136,15 @@ def _iwr6843(tmp_path: Path) -> Iterator[Rig]:
 
     from respecd.drivers.iwr6843 import IWR6843Config, IWR6843Driver
 
-    fake = FakeRadar(tmp_path, _capture_frames())
+    fakes: list[FakeRadar] = []  # made only when a test wants the device (its pseudo-terminal threads)
+
+    def device() -> None:
+        if not fakes:
+            fakes.append(FakeRadar(tmp_path, _capture_frames()))
 
     def make(enabled: bool) -> Driver:
+        device()
+        fake = fakes[-1]
         config = IWR6843Config(name="radar", cli_port=str(fake.cli_path), data_port=str(fake.data_path),
                                cli_timeout_s=0.5, reconnect_initial_s=0.05, reconnect_max_s=0.2, enabled=enabled)
         return IWR6843Driver(config, MonotonicClock())
@@ -144,8 +154,9 @@ def _iwr6843(tmp_path: Path) -> Iterator[Rig]:
         return IWR6843Driver(config, MonotonicClock())
 
     yield Rig(make, unplugged, SensorConfig("radar", rate_hz=20.0, mode="velocity"),
-              SensorConfig("radar", rate_hz=45.0, mode="range"))
-    fake.unplug()
+              SensorConfig("radar", rate_hz=45.0, mode="range"), device=device)
+    for fake in fakes:
+        fake.unplug()
 
 
 def _replay(tmp_path: Path) -> Iterator[Rig]:
@@ -213,6 +224,7 @@ async def _frames_within(driver: Driver, seconds: float, limit: int = 3) -> list
 
 class TestDriverContract:
     async def test_the_constructor_does_no_io(self, rig: Rig) -> None:
+        rig.device()
         threads, fds = set(threading.enumerate()), _open_fds()
         drivers = [rig.make(True), *([rig.unplugged()] if rig.unplugged else [])]
         assert set(threading.enumerate()) == threads, "a constructor started a thread"
