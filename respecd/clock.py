@@ -47,6 +47,11 @@ class ScaledClock(MonotonicClock):
     def now(self) -> float:
         return self._start + super().now() * self._speed
 
+    def restart(self) -> None:
+        """Back to ``start`` now: a replay's log time begins when its pipeline is up, so no
+        logged second is spent loading the detector."""
+        self._t0 = time.monotonic()
+
     async def sleep_until(self, t: float) -> None:
         delay = (t - self.now()) / self._speed
         if delay > 0:

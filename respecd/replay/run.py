@@ -172,6 +172,8 @@ class _Replay:
                           tables=self.tables, observers=[self.collector], latency_model=model,
                           status_sink=lambda fields, line: log.debug("status", line=line))
         session.hooks.inference.append(self.collector.measured)
+        if not lockstep:
+            session.hooks.up.insert(0, clock.restart)  # log time starts with the pipeline, not before it
         marks: list[tuple[float, float]] = []  # the replay loop alone: weight loading excluded
         session.hooks.up.append(lambda: marks.append((time.perf_counter(), time.process_time())))
         try:
