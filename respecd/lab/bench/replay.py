@@ -86,6 +86,7 @@ async def _recording_overhead(
     path: Path, size: tuple[int, int], args: argparse.Namespace, rgb_only: bool, compression: str = "zstd"
 ) -> dict:
     from respecd.clock import MonotonicClock
+    from respecd.config import load_profile
     from respecd.messages import Frame
     from respecd.record.config import RecordingConfig
     from respecd.record.recorder import Recorder
@@ -94,7 +95,8 @@ async def _recording_overhead(
     frames = _frames(size, args.seed)
     clock = MonotonicClock()
     config = RecordingConfig(path=str(path), compression=compression)
-    recorder = Recorder(config, {"name": "bench", "sensors": []}, clock)
+    # the sim-rover's profile: its calibrations and extrinsics are recorded too, as in the daemon
+    recorder = Recorder(config, load_profile("builtin:sim-rover"), clock)
     recorder.start()
     tap_cpu = 0.0
     counts = dict.fromkeys(rates, 0)
