@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import subprocess
+from pathlib import Path
 import sys
 
 from respecd import __version__
@@ -38,3 +39,13 @@ def test_profile_is_the_flag_and_config_its_old_name() -> None:
     for flag in ("--profile", "--config"):
         done = _respecd(flag, "/nonexistent/p.yaml", "--duration", "1")
         assert done.returncode == 2 and "/nonexistent/p.yaml" in done.stderr, done.stderr
+
+
+def test_schema_install_writes_it_beside_a_copied_profile(tmp_path) -> None:
+    profile = tmp_path / "respecd.yaml"
+    profile.write_text("name: x\n")
+    done = _respecd("schema", "--install", str(profile))
+    assert done.returncode == 0 and "add `# yaml-language-server: $schema=profile.schema.json`" in done.stdout
+    assert '"title": "respecd profile"' in (tmp_path / "profile.schema.json").read_text()
+    path = _respecd("schema", "--path").stdout.strip()
+    assert path.endswith("profile.schema.json") and Path(path).is_file()

@@ -134,6 +134,10 @@ def test_schema_command_prints_the_profile_schema():
 
 
 def test_shipped_schema_file_is_current():
-    """The profiles point yaml-language-server at docs/profile.schema.json: keep it in step."""
+    """The profiles point yaml-language-server at profile.schema.json beside them (configs/ links
+    docs/profile.schema.json; the wheel ships it): keep it in step."""
+    assert (REPO / "configs" / "profile.schema.json").resolve() == (REPO / "docs" / "profile.schema.json").resolve()
+    for profile in (REPO / "configs").glob("*.yaml"):
+        assert profile.read_text().startswith("# yaml-language-server: $schema=profile.schema.json\n"), profile
     shipped = json.loads((REPO / "docs" / "profile.schema.json").read_text())
     assert shipped == json.loads(json.dumps(json_schema())), "run: respecd schema --out docs/profile.schema.json"

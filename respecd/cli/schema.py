@@ -1,22 +1,63 @@
-"""``respecd schema``: the profile's JSON Schema, for yaml-language-server and other editors."""
+"""``respecd schema``: the profile's JSON Schema, for yaml-language-server and other editors.
+
+The shipped profiles start with ``# yaml-language-server: $schema=profile.schema.json``:
+the schema sits beside them in the checkout (configs/) and in the installed package
+(``respecd/profiles/``). A profile copied elsewhere (``/etc/respecd/``) gets its schema with
+``respecd schema --install /etc/respecd/respecd.yaml`` (or the directory), which writes
+``profile.schema.json`` beside it so the same header resolves there too.
+"""
 
 from __future__ import annotations
 
 import argparse
 import json
+from importlib import resources
+from pathlib import Path
 
 from respecd.config import json_schema
+from respecd.errors import InputError
+
+SCHEMA_NAME = "profile.schema.json"
+HEADER = f"# yaml-language-server: $schema={SCHEMA_NAME}"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", metavar="FILE", help="write to FILE instead of stdout")
+    parser.add_argument("--install", metavar="PROFILE_OR_DIR",
+                        help=f"write {SCHEMA_NAME} beside this profile (or into this directory) for its editor header")
+    parser.add_argument("--path", action="store_true", help="print where the installed package's schema file is")
+
+
+def installed_path() -> Path:
+    return Path(str(resources.files("respecd.profiles").joinpath(SCHEMA_NAME)))
 
 
 def main(args: argparse.Namespace) -> int:
+    if args.path:
+        print(installed_path())
+        return 0
     text = json.dumps(json_schema(), indent=2) + "\n"
+    if args.install:
+        return install(Path(args.install), text)
     if args.out:
         with open(args.out, "w", encoding="utf-8") as fh:
             fh.write(text)
     else:
         print(text, end="")
+    return 0
+
+
+def install(target: Path, text: str) -> int:
+    directory = target if target.is_dir() else target.parent
+    if not directory.is_dir():
+        raise InputError(f"--install {target}: no such directory {directory}")
+    out = directory / SCHEMA_NAME
+    try:
+        out.write_text(text, encoding="utf-8")
+    except OSError as err:
+        raise InputError(f"--install: cannot write {out}: {err.strerror or err}") from err
+    header = ""
+    if target.is_file() and HEADER not in target.read_text(encoding="utf-8", errors="replace").splitlines()[:3]:
+        header = f" (add `{HEADER}` as the profile's first line)"
+    print(f"{out}: written{header}")
     return 0
