@@ -70,6 +70,7 @@ def test_train_command_on_the_simulator(tmp_path: Path, capsys) -> None:
     assert out.is_file() and card.is_file()
     assert '"data": "sim"' in card.read_text()
     assert "wrote" in capsys.readouterr().out
+    assert (tmp_path / "sim-curve.png").stat().st_size > 0  # the loss curve beside the checkpoint
 
 
 def test_train_command_rejects_bad_input(tmp_path: Path, capsys) -> None:

@@ -30,6 +30,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eval-frames", type=int, default=10,
                         help="sim: held-out frames per scenario evaluated for the model card (0: skip; default 10)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT.resume if present")
+    parser.add_argument("--curve", type=Path, metavar="PNG",
+                        help="training curve: loss per epoch and the held-out mAP (default: OUT with -curve.png)")
     parser.add_argument("--no-progress", "--quiet", dest="quiet", action="store_true",
                         help="no progress bars (--quiet is the old name)")
 
@@ -54,9 +56,41 @@ def main(args: argparse.Namespace) -> int:
 
     model, _ = checkpoint.load(str(args.out))
     card_path = checkpoint.write_card(args.out, model, card)
-    print(f"wrote {args.out} ({args.out.stat().st_size / 1e6:.1f} MB) and {card_path}")
+    curve = save_curve(summary, card["metrics"], args.curve or args.out.with_name(args.out.stem + "-curve.png"))
+    print(f"wrote {args.out} ({args.out.stat().st_size / 1e6:.1f} MB), {card_path} and {curve}")
     print(json.dumps({"train_s": summary["train_s"], "metrics": card["metrics"]}, indent=2))
     return 0
+
+
+def save_curve(summary: dict, metrics: dict | None, path: Path) -> Path:
+    """Loss per epoch and, when the card has one, the held-out mAP@0.5 reached."""
+    import matplotlib
+    import matplotlib.ticker
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    epochs, losses = zip(*summary["epoch_loss"], strict=True) if summary["epoch_loss"] else ((), ())
+    fig, ax = plt.subplots(figsize=(7, 3.6), dpi=110)
+    ax.plot(epochs, losses, "o-", color="#1f4e8c", label="training loss (running mean at epoch end)")
+    ax.set_xlabel("epoch")
+    ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
+    ax.set_ylabel("detection loss (box + class)")
+    map50 = ((metrics or {}).get("map") or {}).get("all", {}).get("all", {}).get("map50")  # all modalities on
+    if isinstance(map50, (int, float)):
+        ax2 = ax.twinx()
+        ax2.plot([epochs[-1]], [map50], "s", color="#c67a3a", label=f"held-out mAP@0.5 = {map50:.3f}")
+        ax2.set_ylim(0, 1)
+        ax2.set_ylabel("mAP@0.5", color="#c67a3a")
+    steps = summary["steps"] // max(1, summary["epochs"])
+    ax.set_title(f"respecd train: {summary['data']}, {summary['epochs']} epochs of {steps} steps")
+    handles = [h for a in fig.axes for h in a.get_legend_handles_labels()[0]]
+    fig.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.0, 0.9), fontsize=8)  # outside the data
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, bbox_inches="tight")
+    plt.close(fig)
+    return path
 
 
 def _check(args: argparse.Namespace) -> None:

@@ -106,8 +106,12 @@ def table(report: dict[str, Any]) -> str:
 
 def plot(report: dict[str, Any], png: Path, plt: Any) -> None:
     """Timeline per policy: actions, contributions, ConfAgg, latency (the load signal)."""
-    fig, axes = plt.subplots(4, 1, figsize=(11, 9), sharex=True)
     names: dict[str, int] = {}
+    for entry in report["policies"].values():  # the action labels first: they size the left margin
+        for d in entry["decisions"]:
+            names.setdefault(_action_label(d), len(names))
+    fig, axes = plt.subplots(4, 1, figsize=(12, 4.5 + 5.5 + 0.18 * len(names)), sharex=True,
+                             gridspec_kw={"height_ratios": [1.2 + 0.12 * len(names), 1, 1, 1]})
     for policy, entry in report["policies"].items():
         _plot_actions(axes[0], policy, entry, names)
         times = [p["t"] for p in entry["timeline"]]
@@ -119,17 +123,27 @@ def plot(report: dict[str, Any], png: Path, plt: Any) -> None:
         for modality in sorted(modalities):
             axes[1].plot([t for t, _ in contributions], [c.get(modality, 0.0) for _, c in contributions],
                          label=f"{policy}: {modality}", lw=1, marker=".", ms=3)
-    titles = ("action chosen at each decision", "contribution per modality", "ConfAgg", "perception latency (ms, load)")
-    for ax, title in zip(axes, titles, strict=True):
+    titles = ("action chosen at each decision", "contribution per modality", "ConfAgg", "perception latency")
+    ylabels = ("action", "contribution (0-1)", "ConfAgg (0-1)", "latency (ms)")
+    for ax, title, ylabel in zip(axes, titles, ylabels, strict=True):
         ax.set_title(title, fontsize=9, loc="left")
+        ax.set_ylabel(ylabel, fontsize=8)
         ax.grid(alpha=0.3)
-        if ax.lines:
-            ax.legend(fontsize=7, ncol=4, loc="upper right")
+        if ax.lines:  # outside the axes, to the right: never over the data
+            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
     axes[-1].set_xlabel("log time (s)")
-    fig.suptitle(f"replay of {Path(report['log']['path']).name}", fontsize=10)
+    fig.suptitle(f"replay of {Path(report['log']['path']).name}: actions, contributions, ConfAgg, latency per policy",
+                 fontsize=10)
     fig.tight_layout()
-    fig.savefig(png, dpi=90)
+    fig.savefig(png, dpi=90, bbox_inches="tight")  # keeps the full action labels and the outside legends
     plt.close(fig)
+
+
+def _action_label(decision: dict[str, Any]) -> str:
+    """The whole action name, one sensor setting per line (rgb 960x540@10Hz / thermal ... )."""
+    name = str(decision.get("action_name") or decision["action"])
+    parts = name.split(" ")
+    return "\n".join(" ".join(parts[i : i + 2]) for i in range(0, len(parts), 2))
 
 
 def _plot_actions(ax: Any, policy: str, entry: dict[str, Any], names: dict[str, int]) -> None:
@@ -137,10 +151,6 @@ def _plot_actions(ax: Any, policy: str, entry: dict[str, Any], names: dict[str, 
     decisions = entry["decisions"]
     if not decisions:
         return
-    ys = []
-    for d in decisions:
-        label = d.get("action_name") or str(d["action"])
-        label = label if len(label) <= 32 else label[:31] + "…"
-        ys.append(names.setdefault(label, len(names)))
+    ys = [names.setdefault(_action_label(d), len(names)) for d in decisions]
     ax.step([d["t"] for d in decisions], ys, where="post", label=policy, lw=1, marker=".", ms=4)
-    ax.set_yticks(range(len(names)), list(names), fontsize=6)
+    ax.set_yticks(range(len(names)), list(names), fontsize=6.5)

@@ -58,12 +58,13 @@ def bar_chart(report: dict, path: Path, title: str) -> None:
         xs = [j + (i - (len(keys) - 1) / 2) * width for j in range(len(conds))]
         ax.bar(xs, [report["contributions"][c].get(key, 0.0) for c in conds], width, label=key)
     ax.set_xticks(range(len(conds)), conds)
+    ax.set_xlabel("scene condition")
     ax.set_ylim(0, 1)
-    ax.set_ylabel("mean contribution")
+    ax.set_ylabel("mean contribution (0-1)")
     ax.set_title(title)
-    ax.legend(ncols=len(keys), loc="upper right", fontsize=8)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, title="modality")  # outside the bars
     fig.tight_layout()
-    fig.savefig(path)
+    fig.savefig(path, bbox_inches="tight")
     plt.close(fig)
 
 

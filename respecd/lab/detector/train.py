@@ -109,8 +109,10 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
     total = steps * cfg.epochs
     resume_path = cfg.out.with_name(cfg.out.name + ".resume")  # not *.pt: never packaged as weights
     first_epoch = _maybe_resume(resume_path, cfg, model, ema, opt)
+    epoch_loss: list[tuple[int, float]] = []  # (epoch, smoothed training loss at its end), for the curve
     for epoch in range(first_epoch, cfg.epochs):
         loss = _epoch(model, ema, opt, pool, cfg, epoch, steps, total)
+        epoch_loss.append((epoch + 1, round(float(loss), 5)))
         checkpoint.save(resume_path, model, {"ema": ema.model.state_dict(), "optimizer": opt.state_dict(),
                                              "epoch": epoch + 1, "ema_updates": ema.updates})
         log.info("epoch_done", epoch=epoch + 1, of=cfg.epochs, loss=round(loss, 4))
@@ -125,6 +127,7 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
         "train_s": round(time.perf_counter() - started, 1),
         "seed": cfg.seed,
         "augment": asdict(cfg.augment),
+        "epoch_loss": epoch_loss,
     }
     checkpoint.save(cfg.out, ema.model, {"data": cfg.data, "train": summary})  # type: ignore[arg-type]  # a FusionNet copy
     summary["out"] = str(cfg.out)

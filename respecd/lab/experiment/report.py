@@ -70,7 +70,7 @@ def figure(result: dict[str, Any], path: Path, title: str = "respecd bench scena
               {p: [c.get("setting", "") if c.get("setting") not in (None, "None") else "" for c in cells[p]]
                for p in policies})
         ax.set_ylabel(label, fontsize=8)
-        ax.set_ylim(0, 45)
+        ax.set_ylim(0, 48)  # head room for the rotated setting labels above 30 Hz bars
     table = {(r["scenario"], r["policy"]): r for r in result["scenarios"]}
     ax_map, ax_cpu = axes[len(rows)], axes[len(rows) + 1]
     _bars(ax_map, scenarios, policies, {p: [table[(s, p)]["map50"] or 0.0 for s in scenarios] for p in policies})
@@ -80,10 +80,19 @@ def figure(result: dict[str, Any], path: Path, title: str = "respecd bench scena
           {p: [table[(s, p)]["compute_ms_per_s"] / 1000 for s in scenarios] for p in policies})
     ax_cpu.set_ylabel("compute (cores)", fontsize=8)
     ax_cpu.set_xticks(np.arange(len(scenarios)), scenarios, fontsize=8, rotation=15)
-    axes[0].legend(ncol=3, fontsize=8, loc="upper right")
+    ax_cpu.set_xlabel("scenario (bar labels: the setting each policy chose)", fontsize=8)
+    axes[0].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, title="policy")
     axes[0].set_title(title)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    fig.savefig(path, bbox_inches="tight")  # the legend sits outside the axes, right of the data
     plt.close(fig)
     return path
+
+
+# re-draw a figure from a saved result: python -m respecd.lab.experiment.report IN.json OUT.png
+if __name__ == "__main__":
+    import json
+    import sys
+
+    figure(json.loads(Path(sys.argv[1]).read_text()), Path(sys.argv[2]))

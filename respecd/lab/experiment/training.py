@@ -128,9 +128,10 @@ def save_curve(result: TrainResult, path: Path, title: str = "respecd train-poli
     ax2.plot(x, result.episode_epsilon, "--", color="#c67a3a", lw=1, label="ε")
     ax2.set_ylabel("ε", color="#c67a3a")
     ax.set_title(title)
-    ax.legend(loc="lower right", fontsize=8)
+    handles = ax.get_legend_handles_labels()[0] + ax2.get_legend_handles_labels()[0]
+    fig.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.0, 0.9), fontsize=8)  # outside the data
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path)
+    fig.savefig(path, bbox_inches="tight")
     plt.close(fig)
     return path
