@@ -73,6 +73,7 @@ def _frames(i: int, rng: np.random.Generator) -> dict[str, Frame]:
 
 
 async def _record(tmp_path: Path, n: int = 45, **overrides: Any) -> tuple[Recorder, list[dict[str, Frame]]]:
+    overrides.setdefault("queue_size", 8192)  # a busy machine must not make this test drop (it is not about drops)
     config = RecordingConfig(enabled=True, path=str(tmp_path / "log-{time}.mcap"), chunk_size_kib=32, **overrides)
     clock = ManualClock()
     recorder = Recorder(config, PROFILE, clock)
