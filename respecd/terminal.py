@@ -1,8 +1,9 @@
-"""A person at a terminal: one status line refreshed in place at the bottom, log lines
-(warnings, errors, lifecycle) printed above it, never interleaved with it.
+"""A person at a terminal: a small status panel refreshed in place at the bottom (sensors;
+sync, drops and recording; detections, contributions and the action), log lines (warnings,
+errors, lifecycle) printed above it, never interleaved with it.
 
-Only used when stdout is a TTY; the JSON stream for machines is written as before. The
-status line is cut to the terminal's width (a wrapped line could not be redrawn in place).
+Only used when stdout is a TTY; the JSON stream for machines is written as before. Each
+panel line is cut to the terminal's width (a wrapped line could not be redrawn in place).
 """
 
 from __future__ import annotations
@@ -13,6 +14,17 @@ import threading
 from typing import Any, TextIO
 
 CLEAR_LINE = "\r\x1b[2K"
+UP_CLEAR = "\x1b[1A\x1b[2K"
+_SECOND = ("sync ", "drops", "rec ")
+_THIRD = ("det=", "contrib ", "action ")
+
+
+def panel(line: str) -> list[str]:
+    """The status line's ``" | "`` parts on three lines: sensors / pipeline / perception+control."""
+    rows: list[list[str]] = [[], [], []]
+    for part in line.split(" | "):
+        rows[1 if part.startswith(_SECOND) else 2 if part.startswith(_THIRD) else 0].append(part)
+    return [" | ".join(r) for r in rows if r]
 
 
 class Terminal:
@@ -20,34 +32,37 @@ class Terminal:
 
     def __init__(self, stream: TextIO | None = None) -> None:
         self._stream = stream
-        self._status = ""
+        self._status: list[str] = []
         self._lock = threading.Lock()
 
     @property
     def stream(self) -> TextIO:
         return self._stream or sys.stdout
 
+    def _erase(self) -> str:
+        """Escape codes that clear the panel and leave the cursor at its first line's start."""
+        return CLEAR_LINE + UP_CLEAR * (len(self._status) - 1) + "\r" if self._status else ""
+
     def log_line(self, text: str) -> None:
         with self._lock:
-            prefix = CLEAR_LINE if self._status else ""
-            self.stream.write(f"{prefix}{text}\n{self._status}")
+            self.stream.write(f"{self._erase()}{text}\n" + "\n".join(self._status))
             self.stream.flush()
 
     def status(self, line: str) -> None:
         width = shutil.get_terminal_size((120, 24)).columns
-        line = line if len(line) < width else line[: max(width - 2, 1)] + "…"
+        lines = [row if len(row) < width else row[: max(width - 2, 1)] + "…" for row in panel(line)]
         with self._lock:
-            self._status = line
-            self.stream.write(CLEAR_LINE + line)
+            erase, self._status = self._erase(), lines
+            self.stream.write(erase + "\n".join(lines))
             self.stream.flush()
 
     def close(self) -> None:
-        """Leave the last status on screen, on its own line."""
+        """Leave the last status on screen, ending its line."""
         with self._lock:
             if self._status:
                 self.stream.write("\n")
                 self.stream.flush()
-                self._status = ""
+                self._status = []
 
 
 TERMINAL = Terminal()

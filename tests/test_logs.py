@@ -11,7 +11,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from respecd.terminal import CLEAR_LINE, Terminal
+from respecd.terminal import CLEAR_LINE, UP_CLEAR, Terminal
 
 SCRIPT = """
 import logging, sys, warnings
@@ -68,15 +68,16 @@ relay.stop()
     assert "[ WARN" not in done.stderr and "plain text on stderr" in done.stderr
 
 
-def test_status_line_is_redrawn_and_log_lines_go_above_it() -> None:
+def test_status_panel_is_redrawn_and_log_lines_go_above_it() -> None:
     stream = io.StringIO()
     terminal = Terminal(stream)
-    terminal.status("t=1s rgb 30Hz")
+    terminal.status("t=1s | rgb 30Hz | sync 30Hz good | drops bundles=0 | det=1 conf=0.80 | action a r=+0.1")
     terminal.log_line("warning: radar reconnecting")
-    terminal.status("t=2s rgb 30Hz")
+    terminal.status("t=2s | rgb 30Hz")
     terminal.close()
-    assert stream.getvalue() == (f"{CLEAR_LINE}t=1s rgb 30Hz{CLEAR_LINE}warning: radar reconnecting\n"
-                                 f"t=1s rgb 30Hz{CLEAR_LINE}t=2s rgb 30Hz\n")
+    panel = "t=1s | rgb 30Hz\nsync 30Hz good | drops bundles=0\ndet=1 conf=0.80 | action a r=+0.1"
+    erase = CLEAR_LINE + UP_CLEAR * 2 + "\r"  # three panel lines: clear them, back to the first
+    assert stream.getvalue() == (f"{panel}{erase}warning: radar reconnecting\n{panel}{erase}t=2s | rgb 30Hz\n")
 
 
 def test_per_decision_lines_are_for_machines_or_verbose(tmp_path: Path) -> None:
