@@ -15,13 +15,12 @@ import asyncio
 import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from respecd.lab.bench.pipeline import _lag_probe
+from respecd.lab.bench.pipeline import timed_run
 
 CLIENT = r"""
 import asyncio, json, sys, time
@@ -83,17 +82,7 @@ async def _run(seconds: float, port: int | None) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as state_dir:
         session = Session(profile, clock, DriverContext(seed=0, simulation=profile.simulation),
                           state_dir=Path(state_dir), observers=[recorder] if recorder else [])
-        lag: list[float] = []
-        jitter: list[float] = []
-        session.hooks.tick.append(lambda scheduled, actual: jitter.append(actual - scheduled))
-        probe = asyncio.create_task(_lag_probe(lag), name="lag-probe")
-        cpu0, wall0 = time.process_time(), time.perf_counter()
-        try:
-            await session.run(duration=seconds)
-        finally:
-            probe.cancel()
-            await asyncio.gather(probe, return_exceptions=True)
-        cpu_s, wall_s = time.process_time() - cpu0, time.perf_counter() - wall0
+        jitter, lag, cpu_s, wall_s = await timed_run(session, seconds)
     warm_lag, warm_jitter = lag[len(lag) // 10 :], np.abs(jitter[len(jitter) // 10 :])
     return {
         "loop_lag_ms_p50": round(float(np.percentile(warm_lag, 50)) * 1000, 3),

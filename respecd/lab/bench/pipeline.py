@@ -43,6 +43,22 @@ async def _lag_probe(samples: list[float]) -> None:
         samples.append(loop.time() - due)
 
 
+async def timed_run(session: Any, seconds: float) -> tuple[list[float], list[float], float, float]:
+    """Run ``session`` for ``seconds`` beside a loop-lag probe: (tick lateness s, probe lateness s,
+    process CPU s, wall s)."""
+    jitter: list[float] = []
+    lag: list[float] = []
+    session.hooks.tick.append(lambda scheduled, actual: jitter.append(actual - scheduled))
+    probe = asyncio.create_task(_lag_probe(lag), name="lag-probe")
+    cpu0, wall0 = time.process_time(), time.perf_counter()
+    try:
+        await session.run(duration=seconds)
+    finally:
+        probe.cancel()
+        await asyncio.gather(probe, return_exceptions=True)
+    return jitter, lag, time.process_time() - cpu0, time.perf_counter() - wall0
+
+
 async def _measure(profile: Any, seconds: float) -> dict[str, Any]:
     import tempfile
     from pathlib import Path
@@ -55,17 +71,7 @@ async def _measure(profile: Any, seconds: float) -> dict[str, Any]:
     context = DriverContext(seed=0, simulation=getattr(profile, "simulation", None))
     with tempfile.TemporaryDirectory() as state_dir:
         daemon = Session(profile, clock, context, state_dir=Path(state_dir))
-        jitter: list[float] = []
-        lag: list[float] = []
-        daemon.hooks.tick.append(lambda scheduled, actual: jitter.append(actual - scheduled))
-        probe = asyncio.create_task(_lag_probe(lag), name="lag-probe")
-        cpu0, wall0 = time.process_time(), time.perf_counter()
-        try:
-            await daemon.run(duration=seconds)
-        finally:
-            probe.cancel()
-            await asyncio.gather(probe, return_exceptions=True)
-        cpu_s, wall_s = time.process_time() - cpu0, time.perf_counter() - wall0
+        jitter, lag, cpu_s, wall_s = await timed_run(daemon, seconds)
     frames = {n: d.health.frames for n, d in daemon.drivers.items()}
     dropped = sum(q.dropped for q in daemon.frame_queues.values()) + daemon.bundles.dropped
     warm = jitter[len(jitter) // 10 :]  # skip start-up ticks (imports, first renders)
