@@ -59,10 +59,18 @@ class IWR6843Config(DriverConfigBase):
     reconnect_max_s: float = Field(10.0, gt=0, le=600, description="Longest reconnect delay (s).")
     base_cfg: Path | None = Field(None, description="Your own cfg: its non-chirp lines (CFAR, calibration) are kept.")
     board: Literal["isk", "aop"] = Field("isk", description="Antenna board: chirp TX order and RX gain.")
+    firmware: cfg.Firmware | None = Field(
+        None, description="Demo image on the board: xwr68xx_mmw_demo (ISK/ODS out-of-box, HWA+DSP, needs bpmCfg), "
+        "xwr64xx_mmw_demo or xwr64xxAOP_mmw_demo (HWA only, no bpmCfg). Default: from board.")
     num_tx: Literal[2, 3] = Field(3, description="TX antennas in TDM: 3 (azimuth + elevation) or 2 (azimuth, isk).")
     range_profile: bool = Field(False, description="Also stream the range profile (TLV 2; costs UART budget).")
-    max_points: int = Field(100, ge=1, le=1000, description="Points per frame assumed when checking the UART budget.")
+    max_points: int = Field(100, ge=1, le=1000,
+                            description="Points per frame the frame timeline leaves UART time for (blocking write).")
     frame_queue: int = Field(4, ge=1, le=64, description="Frames buffered before the oldest is dropped.")
+
+    @property
+    def demo_firmware(self) -> cfg.Firmware:
+        return self.firmware or cfg.DEFAULT_FIRMWARE[self.board]
 
     @model_validator(mode="after")
     def _antennas_fit_board(self) -> IWR6843Config:
@@ -81,7 +89,7 @@ class IWR6843Driver(Driver):
         super().__init__(config, clock, context)
         self._log = log.bind(sensor=self.name)
         self.parser = MmwParser()
-        self._max_rate = min(max_rate_hz(m, config.num_tx, config.max_points, config.range_profile) for m in MODES)
+        self._max_rate = min(max_rate_hz(m, *self._table_key) for m in MODES)
         self._queue: DropOldestQueue[Frame | None] = DropOldestQueue(config.frame_queue, name=self.name)
         self._cli: CliPort | None = None
         self._ports: list[Any] = []
@@ -98,6 +106,10 @@ class IWR6843Driver(Driver):
         self.switch_times_s: list[float] = []
         self.foreign_packets = 0
         self._stream_mode: RadarMode | None = None  # chirp preference of the frames now arriving
+
+    @property
+    def _table_key(self) -> tuple[int, int, bool]:
+        return (self.config.num_tx, self.config.max_points, self.config.range_profile)
 
     @property
     def capabilities(self) -> Capabilities:
@@ -164,7 +176,7 @@ class IWR6843Driver(Driver):
         clamped = clamp_request(self.capabilities, request)
         if not clamped.enabled:
             return clamped, None
-        profile = lookup(clamped.mode or "range", clamped.rate_hz, self.config.num_tx)
+        profile = lookup(clamped.mode or "range", clamped.rate_hz, *self._table_key)
         notes = list(clamped.notes)
         if profile.rate_hz != clamped.rate_hz:
             notes.append(f"rate {clamped.rate_hz:g} Hz -> {profile.rate_hz:g} Hz (chirp table row)")
@@ -178,7 +190,7 @@ class IWR6843Driver(Driver):
         if profile == self.profile:
             return planned
         c = self.config
-        lines = ["sensorStop"] if profile is None else cfg.render(profile, c.board, c.range_profile, self._base)
+        lines = ["sensorStop"] if profile is None else cfg.render(profile, c.board, self._base, c.demo_firmware)
         self.health.paused = True
         started = time.monotonic()
         try:

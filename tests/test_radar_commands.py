@@ -47,18 +47,25 @@ def _need(path: Path) -> Path:
 def test_radar_profile_prints_a_cfg_with_its_figures(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["radar-profile", "--prefer", "range", "--fps", "10"]) == 0
     out = capsys.readouterr().out
-    assert "% Range Resolution(m): 0.2441" in out and "% Maximum Radial Velocity(m/s): 1.0" in out
+    assert "% Range Resolution(m): 0.0732" in out and "% Maximum unambiguous Range(m): 14.99" in out
+    assert "firmware xwr68xx_mmw_demo" in out
     lines = parse_lines(out)
     assert lines[0] == "sensorStop" and lines[-1] == "sensorStart"
-    assert "profileCfg 0 60 388 7 28.49 0 0 30 1 256 12499 0 0 30" in lines
+    assert "profileCfg 0 60 10 7 28.49 0 0 100 1 256 12499 0 0 30" in lines and "bpmCfg -1 0 0 1" in lines
+    assert "cfarFovCfg -1 0 0 14.99" in lines
+    assert main(["radar-profile", "--board", "aop"]) == 0
+    assert "bpmCfg" not in capsys.readouterr().out  # the AOP image is HWA-only
 
 
 def test_radar_profile_json_table_and_limits(capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["radar-profile", "--prefer", "velocity", "--fps", "30", "--json"]) == 0
     figures = json.loads(capsys.readouterr().out)
-    assert figures["loops"] == 32 and figures["problems"] == [] and figures["max_velocity_mps"] == pytest.approx(3.205)
+    assert figures["loops"] == 32 and figures["problems"] == [] and figures["firmware"] == "xwr68xx_mmw_demo"
+    assert figures["uart_bytes_per_frame"] == 2144 and figures["max_points"] == 100
+    uart_ms = figures["uart_bytes_per_frame"] * 10 / 921600 * 1000
+    assert uart_ms <= figures["frame_period_ms"] - figures["active_frame_ms"]
     assert main(["radar-profile", "--fps", "30", "--max-points", "200"]) == 1
-    assert "UART needs" in capsys.readouterr().err
+    assert "frame timeline" in capsys.readouterr().err
     assert main(["radar-profile", "--table"]) == 0
     assert len(capsys.readouterr().out.splitlines()) == 1 + 60
     assert main(["radar-profile", "--fps", "45"]) == 2

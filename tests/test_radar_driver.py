@@ -26,11 +26,18 @@ from respecd.clock import MonotonicClock
 from respecd.drivers.iwr6843 import IWR6843Config, IWR6843Driver
 from respecd.errors import DriverIOError, DriverTimeoutError, DriverUnavailableError
 from respecd.messages import SensorConfig
+from respecd.radar import cfg
+from respecd.radar.chirp import lookup
 from respecd.radar.cli_port import PROMPT, CliPort
 from respecd.radar.tlv import MAGIC
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 CAPTURE = REAL / "ti_iwr6843_oob_automated_doors" / "xwr68xx_processed_stream_2019_12_04T21_44_51_663.dat"
+
+
+def _row_lines(mode: str, rate: int, command: str) -> list[str]:
+    """The lines of ``command`` in the ISK cfg the driver sends for a table row."""
+    return [line for line in cfg.render(lookup(mode, rate)) if line.split()[0] == command]  # type: ignore[arg-type]
 
 
 def _capture_frames() -> list[bytes]:
@@ -168,7 +175,8 @@ async def test_start_streams_real_frames_and_stop_is_clean(radar: FakeRadar) -> 
     await driver.start()
     try:
         assert radar.commands[0] == "sensorStop" and radar.commands[1] == "flushCfg"
-        assert radar.commands[-1] == "sensorStart" and "frameCfg 0 2 16 0 100 1 0" in radar.commands
+        assert radar.commands[-1] == "sensorStart" and _row_lines("range", 10, "frameCfg")[0] in radar.commands
+        assert "bpmCfg -1 0 0 1" in radar.commands  # the ISK's HWA+DSP demo refuses sensorStart without it
         assert not driver.health.paused and driver.applied.mode == "range" and driver.applied.rate_hz == 10
         frames = await _take(driver, 6)
     finally:
@@ -194,8 +202,8 @@ async def test_reconfigure_switches_chirp_and_reports_the_time(radar: FakeRadar)
         applied = await driver.apply(SensorConfig(modality="radar", rate_hz=20, mode="velocity"))
         switch = radar.commands[sent:]
         assert switch[:2] == ["sensorStop", "flushCfg"] and switch[-1] == "sensorStart"
-        assert "profileCfg 0 60 115 7 15 0 0 100 1 64 9142 0 0 30" in switch
-        assert "frameCfg 0 2 64 0 50 1 0" in switch
+        assert _row_lines("velocity", 20, "profileCfg")[0] in switch
+        assert _row_lines("velocity", 20, "frameCfg")[0] in switch
         assert applied.mode == "velocity" and applied.rate_hz == 20
         assert any("reconfigured in" in note for note in applied.notes) and len(driver.switch_times_s) == 2
         frames = await _take(driver, driver.config.frame_queue + 3)  # frames queued before the switch come first
@@ -258,7 +266,7 @@ async def test_unplug_reconnects_with_backoff_and_reconfigures(tmp_path: Path) -
         async with asyncio.timeout(5):
             while driver.health.restarts < 1:
                 await asyncio.sleep(0.02)
-        assert fake.commands[-1] == "sensorStart" and "frameCfg 0 2 64 0 50 1 0" in fake.commands
+        assert fake.commands[-1] == "sensorStart" and _row_lines("velocity", 20, "frameCfg")[0] in fake.commands
         assert driver.applied.mode == "velocity" and len(await _take(driver, 3)) == 3
     finally:
         await driver.stop()

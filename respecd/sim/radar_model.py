@@ -1,10 +1,10 @@
 """Simulated IWR6843 point cloud: what the out-of-box demo would report for the scene.
 
 The chirp for (mode, rate) comes from the radar driver's own lookup table
-(``respecd.radar.chirp``: TI's xWR68xx visualizer presets refitted to the frame period), so
-the simulated and the real radar trade range against velocity identically: the range
-preset reaches ~50 m but folds speeds beyond +-1 m/s; the velocity preset resolves 0.05 m/s
-up to +-3.2 m/s but its CFAR stops at ~11 m; at high rates fewer loops fit the frame.
+(``respecd.radar.chirp``), so the simulated and the real radar trade range resolution
+against velocity resolution identically: both modes reach 14.99 m (their cfarFovCfg); the
+range mode resolves 7 cm but only ~0.7-1.4 m/s; the velocity mode resolves 0.03 m/s at low
+rates (0.6 m/s at 30 fps, where the UART write leaves ~4 ms of chirping) but only 0.29 m.
 """
 
 from __future__ import annotations
@@ -47,7 +47,7 @@ def radar_figures(mode: str, rate_hz: float) -> RadarFigures:
     return RadarFigures(
         p.range_resolution_m,
         p.max_range_m,
-        p.cfar_range_m,
+        p.max_range_m,  # the cfg's cfarFovCfg range limit is the max range (TI's 0.8 Fs convention)
         p.max_velocity_mps,
         p.velocity_resolution_mps,
         p.loops,
