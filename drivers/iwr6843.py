@@ -4,8 +4,16 @@ CLI port (115200): the chirp cfg, line by line, each answered ``Done``. Data por
 TLV packets, read by a worker thread and parsed incrementally. The controller's action
 (range/velocity preference, frame rate) maps to a chirp-table row; switching it means
 ``sensorStop``, ``flushCfg``, the full cfg, ``sensorStart``: the stream pauses meanwhile
-(``health.paused``) and the switch time is measured and reported. A lost port (unplugged
-board, read error, silent stream) is reopened with exponential backoff and reconfigured.
+(``health.paused``) and the switch time is measured and reported.
+
+Health does not depend on what the controller does: the radar is stalled when no packet came
+for ``stall_timeout_s`` (+3 frame periods) while it should stream, however many switches
+happened meanwhile. A stall, a read error (unplugged board) or a reconfiguration the CLI
+rejected or never answered starts one recovery: reopen the ports, send the last request (or
+the last profile that streamed, if the request is what failed) from ``sensorStop`` +
+``flushCfg``, and wait for packets, with exponential backoff. It is logged once when it
+begins (``radar.lost``, with the retry interval), again only if the cause changes kind, and
+once when packets flow (``radar.back``).
 """
 
 from __future__ import annotations
@@ -24,13 +32,21 @@ from pydantic import Field, model_validator
 
 from respecd.clock import Clock
 from respecd.drivers.base import Capabilities, Driver, DriverConfigBase, DriverContext, clamp_request
-from respecd.errors import ConfigError, DriverIOError, DriverTimeoutError, DriverUnavailableError, InputError
+from respecd.errors import (
+    ConfigError,
+    DriverError,
+    DriverIOError,
+    DriverTimeoutError,
+    DriverUnavailableError,
+    InputError,
+)
 from respecd.messages import Frame, RadarMode, SensorConfig
 from respecd.queues import DropOldestQueue
 from respecd.radar import cfg
 from respecd.radar.chirp import ChirpProfile, lookup, max_rate_hz
-from respecd.radar.cli_port import CliPort
+from respecd.radar.cli_port import CliPort, CliRejectedError
 from respecd.radar.data_port import INTER_BYTE_TIMEOUT_S, DataPortReader
+from respecd.radar.health import OutageLog
 from respecd.radar.parser import MmwParser, Packet, RadarPacket
 
 log = structlog.get_logger(__name__)
@@ -95,14 +111,21 @@ class IWR6843Driver(Driver):
         self._ports: list[Any] = []
         self._reader: DataPortReader | None = None
         self._base: list[str] | None = None
-        self.profile: ChirpProfile | None = None  # what the radar runs now (None: stopped)
-        self._wanted = self.applied
+        self.profile: ChirpProfile | None = None  # what the radar runs now (None: stopped or unknown)
+        self._wanted = self.applied  # the controller's latest request
+        self._sent: SensorConfig | None = None  # the request whose cfg the radar accepted last
+        self._good: SensorConfig | None = None  # the last request under which packets arrived
+        self._suspect: SensorConfig | None = None  # a request that failed or streamed nothing
+        self._rejected: dict[ChirpProfile, str] = {}  # rows the CLI refused, with its answer
         self._lock = asyncio.Lock()  # one reconfiguration (or reconnect) at a time
         self._failed = asyncio.Event()
+        self._trouble: tuple[str, str] = ("stall", "no radar packets")  # (kind, message) for the watcher
         self._watch_task: asyncio.Task[None] | None = None
         self._running = False
         self._seq = 0
-        self._last_packet = 0.0  # time.monotonic() of the last packet, for stall detection
+        self._last_packet = 0.0  # time.monotonic() of the last packet (or of the start of streaming)
+        self._packets_since_switch = 0
+        self.outage = OutageLog(self._log)
         self.switch_times_s: list[float] = []
         self.foreign_packets = 0
         self._stream_mode: RadarMode | None = None  # chirp preference of the frames now arriving
@@ -125,7 +148,6 @@ class IWR6843Driver(Driver):
                 raise ConfigError(f"sensor {self.name}: base_cfg: {err}") from err
         while len(self._queue):  # the end marker of a previous stop must not end the new stream
             self._queue.get_nowait()
-        self._failed = asyncio.Event()
         async with self._lock:
             try:
                 await self._connect()
@@ -135,7 +157,8 @@ class IWR6843Driver(Driver):
                 raise
         self._running = True
         self._watch_task = asyncio.create_task(self._watch(), name=f"{self.name}-watch")
-        self._log.info("radar.started", cli=self.config.cli_port, data=self.config.data_port)
+        self._log.info("radar.started", cli=self.config.cli_port, data=self.config.data_port,
+                       firmware=self.config.demo_firmware)
 
     async def stop(self) -> None:
         if not self._running and not self._ports:
@@ -164,11 +187,23 @@ class IWR6843Driver(Driver):
 
     async def apply(self, request: SensorConfig) -> SensorConfig:
         async with self._lock:
+            planned, profile = self._plan(request)
+            if profile is not None and profile in self._rejected:
+                note = f"{profile.preference} at {profile.rate_hz:g} Hz was rejected ({self._rejected[profile]})"
+                return replace(self.applied, notes=(*self.applied.notes, note))
             self._wanted = request
             if not self._running:
-                self.applied = self._plan(request)[0]  # sent to the radar at start
+                self.applied = planned  # sent to the radar at start
                 return self.applied
-            self.applied = await self._switch(request)
+            try:
+                self.applied = await self._switch(request)
+            except DriverError as err:
+                if isinstance(err, CliRejectedError) and profile is not None:
+                    self._rejected[profile] = str(err)  # the demo's answer will not change: do not retry it
+                self._suspect = request  # recover to the last good profile, not to this one
+                self._raise_trouble(type(err).__name__, str(err))
+                raise DriverIOError(f"radar {self.name}: reconfiguration failed ({err}); "
+                                    "restoring the last good profile") from err
             return self.applied
 
     def _plan(self, request: SensorConfig) -> tuple[SensorConfig, ChirpProfile | None]:
@@ -182,39 +217,60 @@ class IWR6843Driver(Driver):
             notes.append(f"rate {clamped.rate_hz:g} Hz -> {profile.rate_hz:g} Hz (chirp table row)")
         return replace(clamped, rate_hz=profile.rate_hz, notes=tuple(notes)), profile
 
-    async def _switch(self, request: SensorConfig) -> SensorConfig:
+    async def _switch(self, request: SensorConfig, force: bool = False) -> SensorConfig:
         """Send the cfg for ``request`` unless the radar already runs it. Caller holds the lock."""
         planned, profile = self._plan(request)
         if self._cli is None:  # between reconnect attempts: the reconnect sends ``_wanted``
             return replace(planned, notes=(*planned.notes, "radar disconnected: applied when it is back"))
-        if profile == self.profile:
+        if profile == self.profile and not force:
             return planned
         c = self.config
         lines = ["sensorStop"] if profile is None else cfg.render(profile, c.board, self._base, c.demo_firmware)
+        resumes = self.profile is None  # streaming (re)starts: the stall clock starts now, not at a switch
         self.health.paused = True
+        self.profile = None  # unknown until sensorStart is answered
         started = time.monotonic()
         try:
-            await self._cli_call(self._cli.send_config, lines[:-1], lines=len(lines))
-            if profile is not None:  # frames after sensorStart are the new profile's; older ones have arrived
-                self.parser.doppler_resolution = profile.velocity_resolution_mps  # SDK 2.x Doppler bins -> m/s
-                self._stream_mode = profile.preference
-            await self._cli_call(self._cli.command, lines[-1])
-        except (*_RECOVERABLE, TimeoutError) as err:
-            self.profile = None
+            await self._send(lines, profile)
+        except asyncio.CancelledError:  # the caller gave up mid-switch: the radar's state is unknown
+            self._raise_trouble("CancelledError", "reconfiguration cancelled midway")
+            raise
+        except DriverError as err:
             self.health.error(err)
-            raise DriverIOError(f"radar {self.name}: reconfiguration failed: {err}") from err
+            raise
+        except (OSError, TimeoutError) as err:
+            self.health.error(err)
+            raise DriverTimeoutError(f"radar {self.name}: CLI call failed: {err!r}") from err
         seconds = time.monotonic() - started
-        self.profile = profile
-        self._last_packet = time.monotonic()
+        self.profile, self._sent = profile, request
         if profile is None:
             self._log.info("radar.disabled", switch_ms=round(seconds * 1000, 1))
             return replace(planned, notes=(*planned.notes, "radar stopped (sensorStop)"))
+        if resumes:
+            self._last_packet = time.monotonic()
+        self._packets_since_switch = 0
         self.health.paused = False
         self.switch_times_s.append(seconds)
         self._log.info("radar.switch", mode=profile.preference, rate_hz=profile.rate_hz,
                        switch_ms=round(seconds * 1000, 1), commands=len(lines), **profile.figures())
         note = f"radar reconfigured in {seconds * 1000:.0f} ms (stream paused)"
         return replace(planned, notes=(*planned.notes, note))
+
+    async def _send(self, lines: list[str], profile: ChirpProfile | None) -> None:
+        """The whole cfg; a line that times out restarts it from sensorStop + flushCfg (no duplicates)."""
+        assert self._cli is not None
+        for attempt in range(1, self.config.cli_retries + 2):
+            try:
+                await self._cli_call(self._cli.send_config, lines[:-1], lines=len(lines))
+                if profile is not None:  # frames after sensorStart are the new profile's; older ones have arrived
+                    self.parser.doppler_resolution = profile.velocity_resolution_mps  # SDK 2.x bins -> m/s
+                    self._stream_mode = profile.preference
+                await self._cli_call(self._cli.command, lines[-1])
+                return
+            except (DriverTimeoutError, TimeoutError) as err:
+                if attempt > self.config.cli_retries:
+                    raise
+                self._log.warning("radar.cfg_restart", attempt=attempt, error=str(err))
 
     async def _cli_call(self, fn: Any, *args: Any, lines: int = 1) -> Any:
         """Run a blocking CLI call in a worker thread, bounded by the per-line timeouts."""
@@ -239,6 +295,7 @@ class IWR6843Driver(Driver):
             await self._cli_call(self._cli.wake)
         except (OSError, TimeoutError) as err:
             raise DriverUnavailableError(f"radar {self.name}: CLI port does not answer: {err}") from err
+        self._failed.clear()
         self._reader = DataPortReader(self._ports[1], self.parser, asyncio.get_running_loop(),
                                       self._on_packets, self._on_read_error, name=f"{self.name}-data")
         self._reader.start()
@@ -274,6 +331,7 @@ class IWR6843Driver(Driver):
                     self._log.warning("radar.foreign_format", kind=packet.kind, hint="not the out-of-box demo")
                 self.foreign_packets += 1
                 self._last_packet = time.monotonic()  # alive, just the wrong firmware: no reconnect churn
+                self._packets_since_switch += 1
                 continue
             if self._seq == 0:
                 self._log.info("radar.firmware", sdk=packet.version_str, platform=f"{packet.platform:#x}")
@@ -286,48 +344,83 @@ class IWR6843Driver(Driver):
             if not self._queue.put(frame):
                 self.health.drops += 1
             self._last_packet = time.monotonic()
+            self._packets_since_switch += 1
+            if self._sent is not None and not self.health.paused:
+                self._good = self._sent
 
     def _on_read_error(self, err: BaseException) -> None:
         self.health.error(err)
+        self._raise_trouble(type(err).__name__, f"data port read failed: {err}")
+
+    def _raise_trouble(self, kind: str, message: str) -> None:
+        self._trouble = (kind, message)
         self._failed.set()
 
+    def _stall_limit_s(self) -> float:
+        period = self.profile.frame_period_ms / 1000 if self.profile is not None else 1.0
+        return self.config.stall_timeout_s + 3 * period
+
     def _stalled(self) -> bool:
-        if self.profile is None or self.health.paused:
+        """No packet for the limit while the radar should stream, whatever the controller did meanwhile."""
+        if self.profile is None or self._lock.locked():
             return False
-        limit = self.config.stall_timeout_s + 3 * self.profile.frame_period_ms / 1000
-        return time.monotonic() - self._last_packet > limit
+        return time.monotonic() - self._last_packet > self._stall_limit_s()
 
     async def _watch(self) -> None:
-        """Reconnect when the data port fails or goes silent."""
+        """Recover when the data port fails, goes silent, or a reconfiguration failed."""
         while self._running:
             try:
                 await asyncio.wait_for(self._failed.wait(), timeout=0.25)
             except TimeoutError:
                 if not self._stalled():
                     continue
-                self.health.error("no radar packets")
+                self._raise_trouble("stall", f"no radar packets for {time.monotonic() - self._last_packet:.1f} s")
+                if self._packets_since_switch == 0 and self._sent is not None:
+                    self._suspect = self._sent  # this profile never streamed: do not insist on it
             self._failed.clear()
-            await self._reconnect()
+            await self._recover()
 
-    async def _reconnect(self) -> None:
+    def _target(self) -> SensorConfig:
+        """What recovery sends: the latest request, unless that one is what failed."""
+        if self._wanted == self._suspect and self._good is not None:
+            return self._good
+        return self._wanted
+
+    async def _recover(self) -> None:
+        """Reopen, reconfigure, and wait for packets, with backoff; log once per change of cause."""
         delay = self.config.reconnect_initial_s
-        self._log.warning("radar.lost", error=self.health.last_error)
         self.health.paused = True
+        kind, message = self._trouble
+        self.health.error(message)
+        self.outage.trouble(kind, message, retry_in_s=0.0)  # the first attempt is now
         while self._running:
             async with self._lock:
                 await self._disconnect()
                 try:
                     await self._connect()
-                    self.applied = await self._switch(self._wanted)
+                    self.applied = await self._switch(self._target(), force=True)
+                    kind, message = "stall", "configured, but no radar packets"
                 except _RECOVERABLE as err:
-                    self.health.error(err)
-                    self._log.debug("radar.retry", delay_s=delay, error=str(err))
-                else:
-                    self.health.restarts += 1
-                    self._log.info("radar.back", restarts=self.health.restarts)
-                    return
+                    kind, message = type(err).__name__, str(err)
+            if self.profile is not None and await self._packets_within(self._stall_limit_s()):
+                self.health.restarts += 1
+                self._suspect = None
+                self.outage.back(restarts=self.health.restarts, mode=self.profile.preference,
+                                 rate_hz=self.profile.rate_hz)
+                return
+            self.health.error(message)
+            self.outage.trouble(kind, message, retry_in_s=delay)
             await asyncio.sleep(delay)
             delay = min(delay * 2, self.config.reconnect_max_s)
+
+    async def _packets_within(self, seconds: float) -> bool:
+        """Whether a packet arrives (or already arrived since the switch) within ``seconds``."""
+        deadline = time.monotonic() + seconds
+        while time.monotonic() < deadline and not self._failed.is_set():
+            if self._packets_since_switch > 0:
+                return True
+            await asyncio.sleep(0.02)
+        return self._packets_since_switch > 0
 
 
 def _close_opened(opening: asyncio.Future[list[Any]]) -> None:

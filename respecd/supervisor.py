@@ -1,8 +1,10 @@
 """Keep stages alive: restart what crashes, with exponential backoff and a rate limit.
 
-"Not ready, retry later" (``DriverUnavailableError``) is logged once when it starts and
-once when the device is back, not on every retry; any other failure is logged with its
-traceback because it is a bug or a broken device.
+A failure the driver diagnosed itself (a ``DriverError``: "not ready, retry later", a
+device that rejects or never answers a command) is one warning line when it starts or its
+cause changes, with the delay before the next try, and debug lines for the retries: no
+traceback, because the message already says what is wrong. Any other exception is a bug
+and is logged with its traceback every time.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import structlog
 
 from respecd.clock import Clock, MonotonicClock
 from respecd.drivers.base import Driver
-from respecd.errors import DriverUnavailableError
+from respecd.errors import DriverError
 from respecd.messages import Frame
 
 log = structlog.get_logger(__name__)
@@ -52,7 +54,7 @@ async def supervise(
     wall = clock or MonotonicClock()
     restarts: deque[float] = deque()
     attempt = 0
-    unavailable_logged = False
+    known: tuple[type, str] | None = None  # the driver-diagnosed cause already logged
     while True:
         started = wall.now()
         try:
@@ -60,16 +62,8 @@ async def supervise(
             error: BaseException = RuntimeError("stage returned")
         except asyncio.CancelledError:
             raise
-        except DriverUnavailableError as err:
+        except Exception as err:  # supervisor boundary: logged below, then restart
             error = err
-            if not unavailable_logged:
-                log.warning("unavailable", stage=name, error=str(err))
-                unavailable_logged = True
-        except Exception as err:  # supervisor boundary: log with traceback, then restart
-            error = err
-            log.exception("stage_crashed", stage=name)
-        else:
-            log.warning("stage_returned", stage=name)
         now = wall.now()
         attempt = 1 if now - started > backoff.stable_s else attempt + 1
         restarts.append(now)
@@ -78,10 +72,33 @@ async def supervise(
         if on_restart is not None:
             on_restart(error)
         delay = backoff.delay(attempt, len(restarts))
-        log.info("stage_restart_scheduled", stage=name, delay_s=round(delay, 2), attempt=attempt)
+        known = _log_failure(name, error, delay, attempt, known)
         await asyncio.sleep(delay)
-        if unavailable_logged and not isinstance(error, DriverUnavailableError):
-            unavailable_logged = False
+
+
+def _log_failure(
+    name: str, error: BaseException, delay: float, attempt: int, known: tuple[type, str] | None
+) -> tuple[type, str] | None:
+    """One line per new cause (no traceback for a driver's own diagnosis); the retries at debug."""
+    retry = {"stage": name, "retry_in_s": round(delay, 2), "attempt": attempt}
+    if isinstance(error, DriverError):
+        cause = (type(error), _kind(error))
+        if cause != known:
+            event = "unavailable" if type(error).__name__ == "DriverUnavailableError" else "driver_failed"
+            log.warning(event, error=str(error), **retry)
+        else:
+            log.debug("stage_retry", error=str(error), **retry)
+        return cause
+    if isinstance(error, RuntimeError) and str(error) == "stage returned":
+        log.warning("stage_returned", **retry)
+    else:
+        log.error("stage_crashed", exc_info=error, **retry)
+    return None
+
+
+def _kind(error: BaseException) -> str:
+    """The message without its numbers: "no packets for 3.1 s" and "... 6.2 s" are one cause."""
+    return "".join(ch for ch in str(error) if not ch.isdigit())
 
 
 def driver_runner(driver: Driver, sink: Callable[[Frame], None]) -> Callable[[], Awaitable[None]]:

@@ -5,7 +5,11 @@ echoes each command after its ``mmwDemo:/>`` prompt, may print informational lin
 (``Ignored: Sensor is already stopped``), and ends with ``Done`` or an error line. After a
 boot the first line often arrives with stray bytes in front and is answered "is not
 recognized as a CLI command" (ti_mmwave_rospkg #33, #42): ``wake`` sends a throwaway newline
-first, and a command answered "not recognized" is retried.
+first, and a command answered "not recognized" is retried. Text the demo prints on its own
+(a crash report, "Obj Det DPC Exception") is read and logged before each command, never
+flushed away. A command that gets no ``Done`` is a timeout; ``profileCfg``/``chirpCfg``
+are never re-sent after one, because the demo appends them: the caller restarts the whole
+sequence from ``sensorStop`` + ``flushCfg`` instead.
 """
 
 from __future__ import annotations
@@ -25,6 +29,11 @@ PROMPT = "mmwDemo:/>"
 Verdict = Literal["done", "error", "info"]
 _ERRORS = ("error", "invalid usage", "exception", "is not recognized", "failed")
 SLOW_COMMANDS = {"sensorStart": 4.0, "sensorStop": 2.0}  # timeout multipliers: RF calibration, frame end
+APPENDING = frozenset({"profileCfg", "chirpCfg"})  # a second copy adds a profile/chirp instead of replacing it
+
+
+class CliRejectedError(DriverIOError):
+    """The demo answered a command with an error: the same line will be refused again."""
 
 
 class SerialLike(Protocol):
@@ -32,11 +41,14 @@ class SerialLike(Protocol):
 
     timeout: float | None
 
+    @property
+    def in_waiting(self) -> int: ...
+
     def write(self, data: bytes) -> int | None: ...
 
-    def readline(self) -> bytes: ...
+    def read(self, size: int = 1) -> bytes: ...
 
-    def reset_input_buffer(self) -> None: ...
+    def readline(self) -> bytes: ...
 
 
 def classify(line: str) -> tuple[Verdict, str]:
@@ -71,34 +83,50 @@ class CliPort:
         self.port.timeout = min(0.1, timeout_s)  # readline granularity; deadlines are ours
 
     def wake(self) -> list[str]:
-        """Flush, send a throwaway newline, swallow whatever comes back (boot garbage, prompt)."""
-        self.port.reset_input_buffer()
+        """Log what is pending, send a throwaway newline, take whatever comes back (boot garbage, prompt)."""
+        self.drain("wake")
         self.port.write(b"\n")
         lines = self._read_until(time.monotonic() + min(0.3, self.timeout_s), stop_on_verdict=False)
-        self.port.reset_input_buffer()
+        self.drain("wake")
+        return lines
+
+    def drain(self, before: str) -> list[str]:
+        """Read (never discard unseen) what the demo printed on its own; log it when it says something."""
+        text = b""
+        while self.port.in_waiting:
+            text += self.port.read(self.port.in_waiting)
+        lines = [line.strip() for line in text.decode("ascii", errors="replace").splitlines()]
+        lines = [line for line in lines if line and line != PROMPT and line.isprintable()]
+        if lines:
+            alarming = any(classify(line)[0] == "error" for line in lines)
+            (log.warning if alarming else log.info)("radar.cli_output", before=before, lines=lines[-20:])
         return lines
 
     def command(self, command: str) -> Reply:
-        """Send one command; retry on timeout or "not recognized"; raise if it never succeeds."""
-        factor = SLOW_COMMANDS.get(command.split()[0], 1.0)
+        """Send one command; retry on "not recognized" (and on timeout unless it appends); raise otherwise."""
+        name = command.split()[0]
+        factor = SLOW_COMMANDS.get(name, 1.0)
         started = time.monotonic()
         for attempt in range(1, self.retries + 2):
-            if attempt > 1:
-                self.port.reset_input_buffer()  # a late "Done" must not answer the next command
+            self.drain(name)  # a crash report or a late "Done" must not answer this command
             self.port.write(command.encode("ascii") + b"\n")
             lines = self._read_until(time.monotonic() + self.timeout_s * factor)
             verdict = classify(lines[-1])[0] if lines else None
             if verdict == "done":
                 return Reply(command, "done", lines, time.monotonic() - started, attempt)
             if verdict == "error" and not _garbled(lines):
-                raise DriverIOError(f"radar CLI rejected {command!r}: {classify(lines[-1])[1]}")
+                raise CliRejectedError(f"radar CLI rejected {command!r}: {classify(lines[-1])[1]}")
+            if verdict is None or verdict == "info":
+                if name in APPENDING:
+                    break  # it may have been applied: re-sending would add a second one
             log.warning("radar.cli_retry", command=command, attempt=attempt, reply=lines[-3:])
-        if lines:
-            raise DriverIOError(f"radar CLI rejected {command!r} {self.retries + 1} times: {lines[-1].strip()}")
-        raise DriverTimeoutError(f"radar CLI did not answer {command!r} within {self.timeout_s * factor:g} s")
+        if lines and _garbled(lines):
+            raise DriverIOError(f"radar CLI did not recognize {command!r} {self.retries + 1} times: {lines[-1]}")
+        heard = f" (heard only {lines[-1]!r})" if lines else ""
+        raise DriverTimeoutError(f"radar CLI gave no Done for {command!r} within {self.timeout_s * factor:g} s{heard}")
 
     def send_config(self, commands: Iterable[str]) -> list[Reply]:
-        """Send a whole cfg in order; stop at the first command that fails."""
+        """Send a whole cfg in order; stop at the first command that fails (the caller restarts it)."""
         return [self.command(line) for line in commands]
 
     def _read_until(self, deadline: float, stop_on_verdict: bool = True) -> list[str]:
