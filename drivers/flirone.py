@@ -47,12 +47,19 @@ class FlirOneConfig(DriverConfigBase):
     )
     max_rate_hz: float = Field(9.0, ge=1, le=30, description="Rate cap offered to the controller (Hz).")
     skip_ffc: bool = Field(False, description="Drop flat-field-correction frames instead of flagging them.")
+    line_crc: Literal["drop", "flag"] = Field(
+        "drop", description="A frame with thermal lines whose VoSPI CRC fails: drop it, or pass it with "
+        "meta['crc_errors'] > 0."
+    )
     attach_jpeg: bool = Field(False, description="Thermal stream: also put the visible JPEG bytes in meta['jpeg'].")
     fileio_handshake: bool = Field(
         False, description="Send the Gen-3 FileIO preamble (CameraFiles.zip) before starting video."
     )
     usb_read_size: int = Field(1 << 20, ge=512, le=1 << 22, description="Bytes per bulk read on EP 0x85.")
     usb_timeout_ms: int = Field(100, ge=10, le=2000, description="Bulk read timeout (ms).")
+    side_timeout_ms: int = Field(
+        10, ge=1, le=100, description="Timeout of each drain of EP 0x81/0x83 after a frame read (ms)."
+    )
     recording: str | None = Field(
         None, description="Play recorded EP 0x85 reads (folder of hex 1.txt, 2.txt, ... or raw .bin) instead of USB."
     )
@@ -92,6 +99,7 @@ class FlirSource:
         self.pending: list[FlirFrame] = []
         self.after_ffc = False
         self.recovered_errors = 0
+        self.crc_logged = False
         # a recording played as fast as read is timed by the camera's own clock (status JSON)
         self.device_timed = driver.device_timed
         self.device_anchor: tuple[float, float] | None = None  # (clock t, device t) of the first frame
@@ -141,6 +149,8 @@ class FlirSource:
     def _emit(self, frame: FlirFrame) -> Sample | None:
         t = self._time(frame)
         self.driver.saw_layout(frame.layout)
+        if frame.crc_errors and self._bad_lines(frame):
+            return None
         ffc = frame.ffc or self.after_ffc  # flirone-v4l2 also drops the first frame after an FFC
         self.after_ffc = frame.ffc
         applied = self.driver.applied
@@ -152,6 +162,7 @@ class FlirSource:
             "layout": frame.layout,
             "status": frame.status,
             "device_time": (frame.status or {}).get("usbNotifiedTimestamp"),
+            "crc_errors": frame.crc_errors,
         }
         if self.cfg.stream == "visible":
             data = _decode_jpeg(frame.jpeg)
@@ -164,6 +175,18 @@ class FlirSource:
             if self.cfg.attach_jpeg:
                 meta["jpeg"] = frame.jpeg
         return Sample(data, t, meta)
+
+
+    def _bad_lines(self, frame: FlirFrame) -> bool:
+        """Log the first corrupted frame; True when the frame is to be dropped."""
+        if not self.crc_logged:
+            self.crc_logged = True
+            log.warning("flirone_line_crc_failed", sensor=self.driver.name, lines=frame.crc_errors,
+                        action=self.cfg.line_crc, hint="corrupted USB data; set line_crc: flag to keep such frames")
+        if self.cfg.line_crc != "drop":
+            return False
+        self.driver.health.drops += 1
+        return True
 
 
 def _fit(image: Any, size: Resolution | None, meta: dict[str, Any]) -> Any:
@@ -224,7 +247,7 @@ class FlirOneDriver(ThreadedDriver):
         if cfg.recording:
             pace = NATIVE_RATE_HZ if cfg.realtime else None
             return RecordedTransport.from_path(cfg.recording, loop=cfg.loop, pace_hz=pace)
-        return PyUsbTransport(cfg.usb_read_size, cfg.fileio_handshake)
+        return PyUsbTransport(cfg.usb_read_size, cfg.fileio_handshake, side_timeout_ms=cfg.side_timeout_ms)
 
     def saw_layout(self, layout: Resolution) -> None:
         """Worker thread: the first frame (or a different camera) tells the native size."""

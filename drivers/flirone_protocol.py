@@ -7,11 +7,15 @@ visible-camera JPEG and a NUL-terminated JSON status. USB reads split a frame an
 ``FrameAssembler.feed`` buffers bytes and frames by the header's sizes; after a bad magic it
 scans forward to the next magic (flirone-v4l2 only reset and waited, which loses more).
 
-Thermal layouts, told apart by the thermal block's size (SENSORS.md §3):
-  * 160x120 (One Pro / Gen 2): per image row two 164-byte VoSPI lines, each a 4-byte
-    id+CRC then 80 little-endian uint16 pixels; the right half sits 4 bytes later.
-  * 80x60 (Gen 3 / Pro LT): one 164-byte line per row, 4-byte id+CRC then 80 pixels;
-    extra lines after row 59 are Lepton telemetry.
+Thermal layouts, told apart by how many 164-byte VoSPI packets the camera put in the block
+(SENSORS.md §3); the geometry comes from the frame, never from the profile:
+  * 160x120 (One Pro / Gen 2): per image row two packets, each a 4-byte id+CRC then 80
+    little-endian uint16 pixels; the right half sits 4 bytes later (flirone-v4l2);
+  * 80x60 (Gen 3 / Pro LT): one packet per row; packets after row 59 are Lepton telemetry.
+Every packet carries the Lepton VoSPI CRC: CRC-16/CCITT (x^16+x^12+x^5+1, init 0) over the
+packet as the Lepton sends it (big-endian words) with the ID's top nibble and the CRC field
+zeroed. All 63 x 20 packets of the real Gen-3 capture match it; a packet that does not is a
+corrupted line (``crc_errors``), and the driver drops the frame by default.
 
 No I/O and no numpy copies beyond the decoded images: the assembler runs in the driver's
 worker thread and in ``respecd bench drivers``.
@@ -19,6 +23,7 @@ worker thread and in ``respecd bench drivers``.
 
 from __future__ import annotations
 
+import binascii
 import json
 import struct
 from dataclasses import dataclass, field
@@ -73,6 +78,7 @@ class FlirFrame:
     telemetry: bytes  # thermal lines after the image (Lepton telemetry), raw
     ffc: bool  # shutter closed for a flat-field correction: the image is not the scene
     repeat: bool  # same content as the frame before (the device resends frames)
+    crc_errors: int = 0  # VoSPI packets of the thermal block whose CRC failed
 
     @property
     def layout(self) -> tuple[int, int]:
@@ -89,24 +95,40 @@ class AssemblerStats:
     bad_thermal: int = 0  # frames dropped because the thermal block fit no layout
     bad_status: int = 0  # status blocks that were not JSON
     bad_line_ids: int = 0  # 80x60 frames whose VoSPI line numbers were out of order
+    bad_crc_frames: int = 0  # frames with at least one VoSPI packet whose CRC failed
+    bad_crc_lines: int = 0
     repeats: int = 0
     ffc: int = 0
     layouts: dict[str, int] = field(default_factory=dict)
 
 
-def decode_thermal(block: bytes | memoryview) -> tuple[np.ndarray, bytes, bool]:
-    """(image uint16 (H, W), telemetry bytes, line ids in order) for either layout."""
+def crc_errors(block: bytes | memoryview, packets: int) -> int:
+    """VoSPI packets among the first ``packets`` of ``block`` whose CRC does not match."""
+    words = np.frombuffer(block, dtype="<u2", count=packets * LINE_WORDS).reshape(packets, LINE_WORDS)
+    wire = words.astype(">u2")  # the Lepton sends big-endian words; the camera stores them little-endian
+    expected = wire[:, 1].astype(np.uint16)
+    wire[:, 0] &= 0x0FFF  # the ID's top nibble (segment / discard flags) is outside the CRC
+    wire[:, 1] = 0
+    raw = wire.tobytes()
+    return sum(
+        binascii.crc_hqx(raw[i * LINE_BYTES : (i + 1) * LINE_BYTES], 0) != int(expected[i]) for i in range(packets)
+    )
+
+
+def decode_thermal(block: bytes | memoryview) -> tuple[np.ndarray, bytes, bool, int]:
+    """(image uint16 (H, W), telemetry bytes, line ids in order, CRC failures) for either layout."""
     size = len(block)
     if size >= PRO_MIN_BYTES:
         rows = np.frombuffer(block, dtype="<u2", count=PRO_MIN_BYTES // 2).reshape(PRO_SIZE[1], 2 * LINE_WORDS)
         # each row: [id, crc, 80 px | id, crc, 80 px] -> pixels x<80 at word 2+x, x>=80 at word 4+x
         image = np.hstack((rows[:, 2:LINE_WORDS], rows[:, LINE_WORDS + 2 :])).astype(np.uint16)
-        return image, bytes(block[PRO_MIN_BYTES:]), True
+        return image, bytes(block[PRO_MIN_BYTES:]), True, crc_errors(block, size // LINE_BYTES)
     if size >= GEN3_MIN_BYTES:
         lines = np.frombuffer(block, dtype="<u2", count=GEN3_MIN_BYTES // 2).reshape(GEN3_SIZE[1], LINE_WORDS)
         # the low 12 bits of a VoSPI id are the line number; the top bits vary (segment/ttt)
         ordered = bool(np.array_equal(lines[:, 0] & 0x0FFF, np.arange(GEN3_SIZE[1])))
-        return lines[:, 2:].astype(np.uint16), bytes(block[GEN3_MIN_BYTES:]), ordered
+        bad = crc_errors(block, size // LINE_BYTES)
+        return lines[:, 2:].astype(np.uint16), bytes(block[GEN3_MIN_BYTES:]), ordered, bad
     raise ThermalLayoutError(f"thermal block of {size} bytes fits neither 160x120 nor 80x60")
 
 
@@ -115,7 +137,7 @@ def parse_status(block: bytes | memoryview) -> dict[str, Any] | None:
     text = bytes(block).split(b"\x00", 1)[0]
     try:
         status = json.loads(text.decode("ascii", errors="replace"))
-    except ValueError:
+    except (ValueError, RecursionError):  # a deeply nested document exhausts the parser's stack
         return None
     return status if isinstance(status, dict) else None
 
@@ -180,7 +202,7 @@ class FrameAssembler:
         thermal_end = header.thermal_size
         jpeg_end = thermal_end + header.jpeg_size
         try:
-            image, telemetry, ordered = decode_thermal(view[:thermal_end])
+            image, telemetry, ordered, bad_crc = decode_thermal(view[:thermal_end])
         except ThermalLayoutError:
             self.stats.bad_thermal += 1
             return None
@@ -196,6 +218,7 @@ class FrameAssembler:
             telemetry=telemetry,
             ffc=bool(status and status.get("shutterState") == FFC_SHUTTER_STATE),
             repeat=repeat,
+            crc_errors=bad_crc,
         )
         self._count(frame, ordered, status is None)
         return frame
@@ -205,6 +228,8 @@ class FrameAssembler:
         s.frames += 1
         s.bad_status += bad_status
         s.bad_line_ids += not ordered
+        s.bad_crc_frames += frame.crc_errors > 0
+        s.bad_crc_lines += frame.crc_errors
         s.repeats += frame.repeat
         s.ffc += frame.ffc
         key = f"{frame.layout[0]}x{frame.layout[1]}"
@@ -225,14 +250,23 @@ def build_frame(
     return header + thermal_block + jpeg + status_bytes
 
 
-def encode_pro_thermal(image: np.ndarray, line_ids: bool = True) -> bytes:
-    """The 160x120 layout of ``image`` (uint16 (120, 160)): two VoSPI lines per row."""
+def encode_pro_thermal(image: np.ndarray, line_ids: bool = True, crc: bool = True) -> bytes:
+    """The 160x120 layout of ``image`` (uint16 (120, 160)): two VoSPI packets per row.
+
+    Packet numbers follow Lepton 3 segments (0-59 in each of 4 segments, the segment number
+    in packet 20's top nibble); each packet gets its VoSPI CRC unless ``crc`` is False.
+    """
     if image.shape != (PRO_SIZE[1], PRO_SIZE[0]):
         raise ValueError(f"expected a (120, 160) image, got {image.shape}")
-    rows = np.zeros((PRO_SIZE[1], 2 * LINE_WORDS), dtype="<u2")
+    packets = np.zeros((2 * PRO_SIZE[1], LINE_WORDS), dtype="<u2")
     if line_ids:
-        rows[:, 0] = np.arange(0, 2 * PRO_SIZE[1], 2)
-        rows[:, LINE_WORDS] = np.arange(1, 2 * PRO_SIZE[1], 2)
-    rows[:, 2:LINE_WORDS] = image[:, :80]
-    rows[:, LINE_WORDS + 2 :] = image[:, 80:]
-    return rows.tobytes()
+        packets[:, 0] = np.arange(2 * PRO_SIZE[1]) % 60
+        packets[20::60, 0] |= (np.arange(1, 5) << 12).astype(np.uint16)
+    packets[0::2, 2:] = image[:, :80]
+    packets[1::2, 2:] = image[:, 80:]
+    if crc:
+        for packet in packets:
+            wire = packet.astype(">u2")
+            wire[0] &= 0x0FFF
+            packet[1] = binascii.crc_hqx(wire.tobytes(), 0)
+    return packets.tobytes()

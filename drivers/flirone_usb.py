@@ -4,17 +4,27 @@ Both speak ``start()``, ``read(size, timeout_ms) -> bytes`` (``b""`` when nothin
 time) and ``close()``, so the frame assembler and the driver above them run unchanged on a
 camera or on a capture. All calls block; the driver makes them from its worker thread.
 
-USB facts (SENSORS.md §3, flirone-v4l2): configuration 3, interfaces 0 (control/status),
-1 (FileIO), 2 (frames); vendor control-OUT requests bmRequestType 0x01, bRequest 0x0B,
-wValue 0 = stop / 1 = start, wIndex = interface, 100 ms timeout ("don't change"); the video
-start carries wLength 2 and gets 200 ms. Frames arrive on bulk EP 0x85; EP 0x81 (status
-JSON) and 0x83 (FileIO) are drained with 10 ms timeouts, as the reference driver does.
+USB facts (SENSORS.md §3; flirone-v4l2, sutty5's driver, moezemara's Gen-3 driver, the ROS
+flir_one_node): configuration 3, interfaces 0 (control/status, EP 0x81 in / 0x02 out),
+1 (FileIO, 0x83 / 0x04), 2 (frames, 0x85 / 0x06). The "start/stop" requests every
+reference sends (bmRequestType 0x01, bRequest 0x0B, wValue 0/1, wIndex = interface) are the
+standard USB SET_INTERFACE: alternate setting 0 = stop, 1 = start. They go through pyusb's
+``set_interface_altsetting`` whenever the device describes that alternate setting, so that
+pyusb (which since 1.3.0 looks endpoints up in the setting it selected) and the kernel
+agree with the camera; a raw control transfer is the fallback only for a setting the
+descriptors do not list, or one that would hide the endpoint read on that interface.
+Frames arrive on bulk EP 0x85; EP 0x81 (status) and 0x83 (FileIO) are drained after every
+frame read, as every reference does (a full side endpoint stalls the camera). ``close``
+stops both streams, releases the interfaces and resets the device, as the references do, so
+that the next start finds it in its power-on state; a start that fails on a wedged camera
+resets it and tries once more.
 """
 
 from __future__ import annotations
 
 import array
 import errno
+import json
 import time
 from pathlib import Path
 from typing import Any, Protocol
@@ -30,11 +40,13 @@ CONFIGURATION = 3
 INTERFACES = (0, 1, 2)
 EP_FRAMES, EP_STATUS, EP_FILEIO = 0x85, 0x81, 0x83
 EP_FILEIO_OUT = 0x02
-REQ_TYPE_VENDOR_OUT, REQ_START_STOP = 0x01, 0x0B
+READ_ENDPOINT = {1: EP_FILEIO, 2: EP_FRAMES}  # what each streaming interface is read on
+REQ_TYPE_SET_INTERFACE, REQ_SET_INTERFACE = 0x01, 0x0B  # standard, host-to-device, recipient interface
 CONTROL_TIMEOUT_MS = 100  # flirone-v4l2: "don't change timeout=100ms !!"
 VIDEO_START_TIMEOUT_MS = 200
-SIDE_POLL_TIMEOUT_MS = 10
-SIDE_POLL_PERIOD_S = 0.1  # drain 0x81/0x83 at most this often so 0x85 keeps the bandwidth
+SIDE_READ_TIMEOUT_MS = 10  # flirone-v4l2 and the Android drivers: 10 ms per side endpoint per loop
+SIDE_READ_SIZE = 16384
+SIDE_READS_MAX = 4  # per endpoint per frame read, while data keeps coming
 IO_ERRORS_BEFORE_FAIL = 3  # consecutive bulk errors (after clear_halt) before the driver restarts
 # Gen-3 FileIO preamble (moezemara's Gen-3 driver sends it before starting video; optional)
 FILEIO_HANDSHAKE = (
@@ -58,19 +70,43 @@ class Transport(Protocol):
 class PyUsbTransport:
     """The camera through pyusb and libusb-1.0."""
 
-    def __init__(self, read_size: int = 1 << 20, fileio_handshake: bool = False, backend: Any = None) -> None:
+    def __init__(
+        self, read_size: int = 1 << 20, fileio_handshake: bool = False, backend: Any = None,
+        side_timeout_ms: int = SIDE_READ_TIMEOUT_MS,
+    ) -> None:
         self.read_size = read_size
         self.fileio_handshake = fileio_handshake
         self.backend = backend  # a pyusb backend; None: libusb-1.0
+        self.side_timeout_ms = side_timeout_ms
         self.recovered_errors = 0
+        self.resets = 0
+        self.selection: dict[tuple[int, int], str] = {}  # (interface, alt) -> "pyusb" | "raw", for the log
+        self.status_types: set[str] = set()  # "type" of the JSON messages seen on EP 0x81
         self._dev: Any = None
         self._usb: Any = None
         self._buf = array.array("B", bytes(read_size))
         self._failures = 0
-        self._next_side_poll = 0.0
 
     def start(self) -> None:
         self._usb = _import_pyusb()
+        try:
+            self._setup(self._find())
+        except DriverUnavailableError:
+            self.close()
+            raise
+        except self._usb.core.USBError as err:
+            if err.errno in (errno.EACCES, errno.ENODEV):
+                self._fail_setup(err)
+            log.warning("flirone_usb_reset", reason=f"setup failed: {err}")  # wedged: what a re-plug would do
+            self._reset()
+            try:
+                self._setup(self._find())
+            except self._usb.core.USBError as again:
+                self._fail_setup(again)
+        log.info("flirone_usb_started", fileio_handshake=self.fileio_handshake,
+                 alt_settings={f"{i}.{a}": how for (i, a), how in self.selection.items()})
+
+    def _find(self) -> Any:
         backend = self.backend or self._usb.backend.libusb1.get_backend()
         if backend is None:
             raise DriverUnavailableError(
@@ -80,13 +116,12 @@ class PyUsbTransport:
         if dev is None:
             raise DriverUnavailableError("flirone: no FLIR One (09cb:1996) on the USB bus; plugged in?")
         self._dev = dev
-        try:
-            self._setup(dev)
-        except self._usb.core.USBError as err:
-            self.close()
-            hint = " (permission denied: install systemd/99-respecd.rules)" if err.errno == errno.EACCES else ""
-            raise DriverUnavailableError(f"flirone: USB setup failed: {err}{hint}") from err
-        log.info("flirone_usb_started", fileio_handshake=self.fileio_handshake)
+        return dev
+
+    def _fail_setup(self, err: Any) -> None:
+        self.close()
+        hint = " (permission denied: install systemd/99-respecd.rules)" if err.errno == errno.EACCES else ""
+        raise DriverUnavailableError(f"flirone: USB setup failed: {err}{hint}") from err
 
     def _setup(self, dev: Any) -> None:
         for interface in INTERFACES:
@@ -98,30 +133,65 @@ class PyUsbTransport:
         dev.set_configuration(CONFIGURATION)
         for interface in INTERFACES:
             self._usb.util.claim_interface(dev, interface)
-        self._control(0, 2)  # stop frames
-        self._control(0, 1)  # stop FileIO
-        self._control(1, 1)  # start FileIO
+        self._select(2, 0)  # stop frames
+        self._select(1, 0)  # stop FileIO
+        self._select(1, 1)  # start FileIO
         if self.fileio_handshake:
             for message in FILEIO_HANDSHAKE:
                 dev.write(EP_FILEIO_OUT, message, 500)
-        self._control(1, 2, b"\x00\x00", VIDEO_START_TIMEOUT_MS)  # start video, wLength 2
+        self._select(2, 1, VIDEO_START_TIMEOUT_MS)  # start video
+        self._check_endpoints()
 
-    def _control(self, value: int, iface: int, data: bytes | None = None, timeout: int = CONTROL_TIMEOUT_MS) -> None:
-        self._dev.ctrl_transfer(REQ_TYPE_VENDOR_OUT, REQ_START_STOP, value, iface, data, timeout)
+    def _select(self, interface: int, alt: int, timeout: int = CONTROL_TIMEOUT_MS) -> None:
+        """SET_INTERFACE(interface, alt), through pyusb when the device describes that setting."""
+        if self._described(interface, alt):
+            self._dev.set_interface_altsetting(interface=interface, alternate_setting=alt)
+            self.selection[(interface, alt)] = "pyusb"
+            return
+        # a setting the descriptors do not list (or one without the endpoint we read): the camera
+        # takes the request as a start/stop command, the host keeps its setting (flirone-v4l2's way)
+        data = b"\x00\x00" if (interface, alt) == (2, 1) else None  # the references send wLength 2 here
+        self._dev.ctrl_transfer(REQ_TYPE_SET_INTERFACE, REQ_SET_INTERFACE, alt, interface, data, timeout)
+        self.selection[(interface, alt)] = "raw"
+
+    def _described(self, interface: int, alt: int) -> bool:
+        cfg = self._dev.get_active_configuration()
+        setting = self._usb.util.find_descriptor(cfg, bInterfaceNumber=interface, bAlternateSetting=alt)
+        if setting is None:
+            return False
+        wanted = READ_ENDPOINT.get(interface)
+        if alt == 0 or wanted is None:
+            return True
+        return self._usb.util.find_descriptor(setting, bEndpointAddress=wanted) is not None
+
+    def _check_endpoints(self) -> None:
+        """The endpoints we read exist in the settings now selected (pyusb's view is the kernel's)."""
+        for interface, endpoint in ((0, EP_STATUS), *READ_ENDPOINT.items()):
+            intf = self._dev.get_active_configuration()[(interface, self._active_alt(interface))]
+            if self._usb.util.find_descriptor(intf, bEndpointAddress=endpoint) is None:
+                raise DriverUnavailableError(
+                    f"flirone: EP {endpoint:#04x} is not in interface {interface}'s selected setting "
+                    f"({intf.bAlternateSetting}); unexpected USB layout, please report it"
+                )
+
+    def _active_alt(self, interface: int) -> int:
+        picked = [alt for (i, alt), how in self.selection.items() if i == interface and how == "pyusb"]
+        return picked[-1] if picked else 0
 
     def read(self, size: int, timeout_ms: int) -> bytes:
         usb = self._usb
-        self._poll_side_endpoints()
         if len(self._buf) != size:  # pyusb fills an array.array in place (a memoryview is refused)
             self._buf = array.array("B", bytes(size))
         try:
             count = self._dev.read(EP_FRAMES, self._buf, timeout_ms)
         except usb.core.USBTimeoutError:
-            return b""
+            count = 0
         except usb.core.USBError as err:
             self._bulk_error(err)
-            return b""
-        self._failures = 0
+            count = 0
+        else:
+            self._failures = 0
+        self._drain_side_endpoints()
         return self._buf[:count].tobytes()
 
     def _bulk_error(self, err: Any) -> None:
@@ -137,31 +207,54 @@ class PyUsbTransport:
         except self._usb.core.USBError:
             pass
 
-    def _poll_side_endpoints(self) -> None:
-        now = time.monotonic()
-        if now < self._next_side_poll:
-            return
-        self._next_side_poll = now + SIDE_POLL_PERIOD_S
+    def _drain_side_endpoints(self) -> None:
+        """Empty EP 0x81 and 0x83 after every frame read (the references poll both every loop)."""
         for endpoint in (EP_STATUS, EP_FILEIO):
-            try:
-                data = self._dev.read(endpoint, 4096, SIDE_POLL_TIMEOUT_MS)
-            except self._usb.core.USBTimeoutError:
-                continue
-            except self._usb.core.USBError as err:
-                if err.errno == errno.ENODEV:  # flirone-v4l2: NO_DEVICE on 0x83 -> restart
-                    raise DriverUnavailableError("flirone: camera unplugged (USB no device)") from err
-                continue
-            if endpoint == EP_STATUS and len(data):
-                log.debug("flirone_status", text=bytes(data).rstrip(b"\x00").decode("ascii", "replace")[:200])
+            for _ in range(SIDE_READS_MAX):
+                try:
+                    data = self._dev.read(endpoint, SIDE_READ_SIZE, self.side_timeout_ms)
+                except self._usb.core.USBTimeoutError:
+                    break
+                except self._usb.core.USBError as err:
+                    if err.errno == errno.ENODEV:  # flirone-v4l2: NO_DEVICE on 0x83 -> restart
+                        raise DriverUnavailableError("flirone: camera unplugged (USB no device)") from err
+                    break
+                if endpoint == EP_STATUS and len(data):
+                    self._note_status(bytes(data))
+                if len(data) < SIDE_READ_SIZE:
+                    break  # a short transfer: nothing more queued
+
+    def _note_status(self, data: bytes) -> None:
+        """Log each kind of JSON message the camera sends on EP 0x81 once (the rest at debug)."""
+        for message in _json_objects(data):
+            kind = str(message.get("type", "?"))
+            if kind not in self.status_types:
+                self.status_types.add(kind)
+                log.info("flirone_status", type=kind, message=json.dumps(message)[:300])
+            else:
+                log.debug("flirone_status", type=kind)
+
+    def _reset(self) -> None:
+        """USB port reset, as every reference does at exit: a wedged camera comes back as after a re-plug."""
+        dev = self._dev
+        if dev is None:
+            return
+        self.resets += 1
+        try:
+            dev.reset()
+        except self._usb.core.USBError as err:  # it may re-enumerate under a new handle: find it again
+            log.debug("flirone_usb_reset_error", error=str(err))
+        self._usb.util.dispose_resources(dev)
+        self._dev = None
 
     def close(self) -> None:
-        dev, self._dev = self._dev, None
+        dev = self._dev
         if dev is None:
             return
         usb = self._usb
-        for value, interface in ((0, 2), (0, 1)):  # stop video, stop FileIO: leave it restartable
+        for interface in (2, 1):  # stop video, stop FileIO
             try:
-                dev.ctrl_transfer(REQ_TYPE_VENDOR_OUT, REQ_START_STOP, value, interface, None, CONTROL_TIMEOUT_MS)
+                self._select(interface, 0)
             except usb.core.USBError:
                 pass
         for interface in INTERFACES:
@@ -169,7 +262,23 @@ class PyUsbTransport:
                 usb.util.release_interface(dev, interface)
             except usb.core.USBError:
                 pass
-        usb.util.dispose_resources(dev)
+        self._reset()
+
+
+def _json_objects(data: bytes) -> list[dict[str, Any]]:
+    """JSON objects in a side-endpoint read (after binary headers, NUL-separated); bad ones skipped."""
+    text = data.decode("ascii", errors="replace")
+    decoder, out, at = json.JSONDecoder(), [], text.find("{")
+    while at >= 0:
+        try:
+            obj, end = decoder.raw_decode(text, at)
+        except (ValueError, RecursionError):
+            at = text.find("{", at + 1)
+            continue
+        if isinstance(obj, dict):
+            out.append(obj)
+        at = text.find("{", end)
+    return out
 
 
 def _import_pyusb() -> Any:

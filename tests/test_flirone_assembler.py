@@ -185,3 +185,37 @@ def test_oversized_header_is_rejected_not_buffered() -> None:
     frames = assembler.feed(bogus + b"\x00" * 100) + assembler.feed(good)
     assert len(frames) == 1
     assert assembler.stats.resyncs >= 1
+
+
+def test_every_real_line_carries_a_valid_vospi_crc(chunks: list[bytes]) -> None:
+    """CRC-16/CCITT over the big-endian packet, ID nibble and CRC field zeroed: 63 x 20 packets match."""
+    frames, assembler = feed_all(chunks)
+    assert [f.crc_errors for f in frames] == [0] * 20 and assembler.stats.bad_crc_lines == 0
+    header = next(i for i, c in enumerate(chunks) if len(c) == HEADER_SIZE)
+    thermal = bytearray(chunks[header + 1])  # the read after a header is that frame's thermal block
+    thermal[164 * 17 + 4 + 2 * 40] ^= 0x01  # one bit of one pixel of row 17
+    damaged = chunks[: header + 1] + [bytes(thermal)] + chunks[header + 2 :]
+    frames, assembler = feed_all(damaged)
+    assert sum(f.crc_errors for f in frames) == 1 and assembler.stats.bad_crc_frames == 1
+
+
+def test_synthesized_pro_frames_carry_valid_crcs_and_a_bad_one_is_caught() -> None:
+    block = encode_pro_thermal(pro_image())
+    (frame,) = FrameAssembler().feed(build_frame(block, b"\xff\xd8", {"shutterState": "ON"}))
+    assert frame.layout == (160, 120) and frame.crc_errors == 0
+    (frame,) = FrameAssembler().feed(build_frame(encode_pro_thermal(pro_image(), crc=False), b"\xff\xd8", {}))
+    assert frame.crc_errors == 240  # every packet of a block whose CRC fields are empty
+
+
+def test_geometry_comes_from_the_frame_not_a_constant(chunks: list[bytes]) -> None:
+    gen3, _ = feed_all(chunks)
+    (pro,) = FrameAssembler().feed(build_frame(encode_pro_thermal(pro_image()), b"\xff\xd8", {}))
+    assert gen3[0].layout == (80, 60) and pro.layout == (160, 120)  # one assembler API, no sensor setting
+
+
+def test_deeply_nested_status_json_is_a_bad_status_not_a_crash() -> None:
+    """A status of 100,000 '[' raised RecursionError out of the assembler (issue 17, item 7)."""
+    nested = build_frame(encode_pro_thermal(pro_image()), b"\xff\xd8", b"[" * 100_000 + b"\x00")
+    assembler = FrameAssembler()
+    (frame,) = assembler.feed(nested)
+    assert frame.status is None and assembler.stats.bad_status == 1

@@ -231,3 +231,23 @@ async def test_vendor_error_on_open_is_unavailable(chunks: list[bytes]) -> None:
     assert isinstance(err.value.__cause__, OSError)
     await driver.stop()
     assert worker_threads() == []
+
+
+@pytest.mark.parametrize("policy", ["drop", "flag"])
+async def test_a_frame_with_a_corrupted_line_is_dropped_or_flagged(chunks: list[bytes], policy: str) -> None:
+    from structlog.testing import capture_logs
+
+    header = next(i for i, c in enumerate(chunks) if len(c) == 28)
+    thermal = bytearray(chunks[header + 1])
+    thermal[164 * 30 + 10] ^= 0x80  # one pixel bit of row 30 of the first frame
+    damaged = chunks[: header + 1] + [bytes(thermal)] + chunks[header + 2 :]
+    driver = FlirOneDriver(config(line_crc=policy), MonotonicClock(), transport=RecordedTransport(damaged))
+    with capture_logs() as logs:
+        frames = await collect(driver)
+    warned = [e for e in logs if e["event"] == "flirone_line_crc_failed"]
+    assert len(warned) == 1 and warned[0]["lines"] == 1
+    if policy == "drop":
+        # frame 0 is gone; its resent twin (frame 1) now takes its slot in the 9 Hz grid
+        assert len(frames) == 18 and driver.health.drops >= 1 and all(f.meta["crc_errors"] == 0 for f in frames)
+    else:
+        assert len(frames) == 18 and frames[0].meta["crc_errors"] == 1
