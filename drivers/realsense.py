@@ -3,7 +3,11 @@
 pyrealsense2 is an optional extra (``pip install 'respecd[realsense]'``), imported in the
 worker thread on ``start``: a profile without a RealSense loads anywhere, and a missing SDK
 is a DriverUnavailableError that names the extra. The T265 needs librealsense <= 2.53.1
-(support was removed in 2.54); with a newer SDK it is not listed, and the error says so.
+(support was removed in 2.54). The extra installs the current pyrealsense2 (2.59 here), and
+PyPI has 2.53.1 only for x86_64 CPython <= 3.10 (no aarch64 wheel before 2.55.1), so on a
+Jetson a T265 needs librealsense v2.53.1 built from source with its Python bindings. The
+supported platform-motion source is the D435i's own IMU (``stream: imu``, ``product:
+D435I``); with a newer SDK a T265 is not listed and the error says what to do.
 
 The driver opens one *sensor* (not a pipeline), so the D435i's depth and colour can be two
 profile entries on one device, and a mode change restarts only that sensor. Sizes and rates
@@ -46,7 +50,12 @@ log = structlog.get_logger(__name__)
 T265_LAST_SDK = (2, 53, 1)
 STREAM_MODALITY = {"depth": "depth", "color": "rgb", "imu": "imu"}
 SENSOR_STREAMS = {"depth": {"depth"}, "color": {"color"}, "imu": {"accel", "gyro", "pose"}}
-INSTALL_HINT = "pip install 'respecd[realsense]' (the T265 needs librealsense <= 2.53.1, e.g. pyrealsense2==2.53.1.*)"
+INSTALL_HINT = "pip install 'respecd[realsense]'"
+T265_HINT = (
+    "a T265 needs librealsense <= 2.53.1 (removed in 2.54): PyPI has pyrealsense2 2.53.1 only for x86_64 "
+    "CPython <= 3.10, so on a Jetson build librealsense v2.53.1 from source with -DBUILD_PYTHON_BINDINGS=ON; "
+    "or use the D435i's IMU (stream: imu, product: D435I)"
+)
 
 
 class RealSenseConfig(DriverConfigBase):
@@ -97,6 +106,7 @@ class RealSenseSource:
         self.depth_units = 0.001
         self.last_accel: tuple[float, float, float] | None = None
         self.last_pose: dict[str, Any] | None = None
+        self.stale_frames = 0  # old-mode frames dropped after a switch
 
     # --- lifecycle -------------------------------------------------------------------------
     def open(self) -> None:
@@ -133,8 +143,9 @@ class RealSenseSource:
             return devices[0]
         wanted = " ".join(filter(None, [self.cfg.product, self.cfg.serial])) or f"a {self.cfg.stream} device"
         hint = ""
-        if self.cfg.stream == "imu" and version_tuple(getattr(rs, "__version__", "0")) > T265_LAST_SDK:
-            hint = f"; a T265 is not supported by librealsense {rs.__version__} (needs <= 2.53.1)"
+        wants_t265 = self.cfg.product is None or "t265" in self.cfg.product.lower()
+        if self.cfg.stream == "imu" and wants_t265 and version_tuple(getattr(rs, "__version__", "0")) > T265_LAST_SDK:
+            hint = f"; librealsense {rs.__version__} cannot see a T265: {T265_HINT}"
         raise DriverUnavailableError(f"realsense: no RealSense found for {wanted}{hint}")
 
     def _sensor_of(self, device: Any) -> Any:
@@ -188,6 +199,8 @@ class RealSenseSource:
         self.sensor.open([self.profiles[m] for m in modes] if len(modes) > 1 else self.profiles[modes[0]])
         self.sensor.start(self.queue)
         self.opened = modes
+        while self.queue.poll_for_frame():  # frames of the old mode still queued (up to its capacity, 2)
+            self.stale_frames += 1
         names = [f"{m.stream} {m.width}x{m.height}@{m.fps}" for m in modes]
         log.info("realsense_mode", sensor=self.cfg.name, modes=names, switch_s=round(time.monotonic() - began, 3))
 
@@ -200,10 +213,20 @@ class RealSenseSource:
             return None
         if self.cfg.stream == "imu":
             return self._motion(frame)
+        if not self._current(frame):
+            self.stale_frames += 1  # delivered after a mode switch, taken with the old mode
+            return None
         t = self.driver.clock.now()
         if not self.applied.enabled or not self.decimator.accept(t):
             return None
         return Sample(self._pixels(frame), t, self._meta(frame))
+
+    def _current(self, frame: Any) -> bool:
+        """Whether a video frame was taken with the mode now open (size and rate of its profile)."""
+        profile = frame.get_profile().as_video_stream_profile()
+        mode = self.opened[0] if self.opened else None
+        return mode is not None and (profile.width(), profile.height(), profile.fps()) == (
+            mode.width, mode.height, mode.fps)
 
     def _pixels(self, frame: Any) -> Any:
         import numpy as np

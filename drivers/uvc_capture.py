@@ -1,10 +1,17 @@
 """The OpenCV side of the uvc driver: one ``cv2.VideoCapture`` owned by the worker thread.
 
 Kept apart from ``uvc.py`` so that validating a profile never imports OpenCV.
+
+OpenCV's V4L2 backend ignores ``CAP_PROP_READ_TIMEOUT_MSEC``: a stalled camera blocks each
+read in ``select()`` for ``OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT`` seconds (default 10), a value
+cap_v4l.cpp reads once per process. The driver sets it (1 s) before the first V4L2 capture
+unless the environment already does. After every size change the camera's frame rate is
+read back (a larger size may only come at a lower rate), and so is the pixel format.
 """
 
 from __future__ import annotations
 
+import os
 import threading
 from dataclasses import replace
 from pathlib import Path
@@ -25,6 +32,17 @@ log = structlog.get_logger(__name__)
 
 BACKENDS = {"any": cv2.CAP_ANY, "v4l2": cv2.CAP_V4L2, "ffmpeg": cv2.CAP_FFMPEG, "gstreamer": cv2.CAP_GSTREAMER}
 GRAB_FAILURES_UNPLUGGED = 3  # consecutive failed grabs before we call the camera gone
+V4L2_SELECT_TIMEOUT_ENV = "OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT"
+V4L2_SELECT_TIMEOUT_S = 1  # whole seconds (cap_v4l.cpp reads an integer); 3 misses = unplugged
+
+
+def limit_v4l2_wait() -> int:
+    """Make a V4L2 read give up after a second instead of 10; the value in force (seconds)."""
+    current = os.environ.setdefault(V4L2_SELECT_TIMEOUT_ENV, str(V4L2_SELECT_TIMEOUT_S))
+    try:
+        return int(current)
+    except ValueError:
+        return 10  # OpenCV would not parse it either: its default
 
 
 class UVCSource:
@@ -48,6 +66,9 @@ class UVCSource:
         self.offset = 0.0  # media seconds of the passes already played
         self.t0 = 0.0
         self.failures = 0
+        self.fourcc: str | None = None  # pixel format read back from the camera
+        self.rate_asked = request.rate_hz
+        self.select_timeout_s: int | None = None  # V4L2 read timeout in force
 
     # --- lifecycle -------------------------------------------------------------------------
     def open(self) -> None:
@@ -72,6 +93,8 @@ class UVCSource:
         api = BACKENDS[self.cfg.backend]
         if api == cv2.CAP_ANY and self.cfg.is_v4l2:
             api = cv2.CAP_V4L2
+        if api == cv2.CAP_V4L2:
+            self.select_timeout_s = limit_v4l2_wait()
         cap = cv2.VideoCapture(device, api) if isinstance(device, int) else cv2.VideoCapture(str(device), api)
         if not cap.isOpened():
             cap.release()
@@ -80,8 +103,11 @@ class UVCSource:
         if not self.cfg.is_file:
             if self.cfg.fourcc:
                 cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*self.cfg.fourcc))
-            # a hung camera must not block the worker forever (V4L2 select timeout)
-            cap.set(cv2.CAP_PROP_READ_TIMEOUT_MSEC, self.cfg.stall_timeout_s * 1000)
+                self.fourcc = _fourcc(cap.get(cv2.CAP_PROP_FOURCC))  # what the camera really took
+                if self.fourcc != self.cfg.fourcc:
+                    log.warning("uvc_fourcc_refused", sensor=self.cfg.name, wanted=self.cfg.fourcc, got=self.fourcc)
+            if api != cv2.CAP_V4L2:  # FFmpeg/GStreamer streams honour it; V4L2 does not (see above)
+                cap.set(cv2.CAP_PROP_READ_TIMEOUT_MSEC, self.cfg.stall_timeout_s * 1000)
         return cap
 
     def _probe_file(self) -> None:
@@ -115,12 +141,16 @@ class UVCSource:
         notes = list(applied.notes)
         self.enabled = applied.enabled
         resolution = applied.resolution or self.native
-        if resolution != self.target:
+        resized = resolution != self.target
+        if resized:
             resolution = self._apply_resolution(resolution, notes)
         if self.cfg.is_file and resolution != self.native:
             notes.append(f"resized from {self.native[0]}x{self.native[1]} by cv2.resize")
-        if applied.rate_hz != self.decimator.rate_hz or self.target is None:
-            self._apply_rate(applied.rate_hz, notes)
+        if applied.rate_hz != self.rate_asked or self.target is None or (resized and not self.cfg.is_file):
+            self._apply_rate(applied.rate_hz, notes)  # a new size may come at another rate: ask again
+        applied = replace(applied, rate_hz=self.decimator.rate_hz)
+        if self.fourcc and self.cfg.fourcc and self.fourcc != self.cfg.fourcc:
+            notes.append(f"camera streams {self.fourcc}, not {self.cfg.fourcc}")
         self.target = resolution
         self.applied = replace(applied, resolution=resolution, notes=tuple(dict.fromkeys(notes)))
         return self.applied
@@ -140,6 +170,7 @@ class UVCSource:
         return got
 
     def _apply_rate(self, rate: float, notes: list[str]) -> None:
+        self.rate_asked = rate
         self.decimator = Decimator(rate)
         if self.cfg.is_file:
             if rate < self.device_fps - 1e-6:
@@ -153,6 +184,10 @@ class UVCSource:
             device = self.cap.get(cv2.CAP_PROP_FPS)
         if device and device > rate + 0.5:
             notes.append(f"camera runs at {device:g} fps, decimated to {rate:g} Hz")
+        elif device and device + 0.5 < rate:  # its fastest at this size and format is slower
+            w, h = self._size()
+            notes.append(f"camera delivers {device:g} fps at {w}x{h}")
+            self.decimator = Decimator(device)
         self.device_fps = device or self.device_fps
 
     def _set_size(self, size: Resolution) -> Resolution:
@@ -224,6 +259,13 @@ class UVCSource:
             image = cv2.resize(image, target, interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
             meta["resized_from"] = (width, height)
         return Sample(np.ascontiguousarray(image), t, meta)
+
+
+def _fourcc(code: float) -> str:
+    """CAP_PROP_FOURCC's number as its four characters ('' when the backend reports none)."""
+    value = int(code)
+    text = "".join(chr((value >> 8 * i) & 0xFF) for i in range(4))
+    return text if value and text.isprintable() else ""
 
 
 def _unique(items: list[Any]) -> list[Any]:

@@ -4,6 +4,7 @@ selection from a D435i-like profile list, and frame conversions."""
 from __future__ import annotations
 
 import sys
+import types
 from types import SimpleNamespace
 
 import numpy as np
@@ -55,9 +56,33 @@ def test_config_validation() -> None:
 async def test_missing_sdk_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setitem(sys.modules, "pyrealsense2", None)  # import pyrealsense2 -> ImportError
     driver = RealSenseDriver(RealSenseConfig(name="depth"), MonotonicClock())
-    with pytest.raises(DriverUnavailableError, match=r"respecd\[realsense\].*2\.53\.1"):
+    with pytest.raises(DriverUnavailableError, match=r"pip install 'respecd\[realsense\]'"):
         await driver.start()
     await driver.stop()
+    await driver.stop()
+
+
+@pytest.mark.parametrize("product", ["T265", None])
+async def test_a_t265_on_a_new_sdk_gets_the_way_that_works(monkeypatch: pytest.MonkeyPatch, product) -> None:
+    """pyrealsense2 >= 2.54 lists no T265: the message says what works instead (issue 21, item 9)."""
+    sdk = types.SimpleNamespace(__version__="2.59.1", context=lambda: types.SimpleNamespace(query_devices=list))
+    monkeypatch.setitem(sys.modules, "pyrealsense2", sdk)  # an SDK that sees no device at all
+    driver = RealSenseDriver(RealSenseConfig(name="imu", modality="imu", stream="imu", product=product),
+                             MonotonicClock())
+    with pytest.raises(DriverUnavailableError) as err:
+        await driver.start()
+    await driver.stop()
+    assert "librealsense 2.59.1 cannot see a T265" in str(err.value)
+    assert "v2.53.1 from source" in str(err.value) and "product: D435I" in str(err.value)
+
+
+async def test_a_d435i_imu_request_gets_no_t265_advice(monkeypatch: pytest.MonkeyPatch) -> None:
+    sdk = types.SimpleNamespace(__version__="2.59.1", context=lambda: types.SimpleNamespace(query_devices=list))
+    monkeypatch.setitem(sys.modules, "pyrealsense2", sdk)
+    driver = RealSenseDriver(RealSenseConfig(name="imu", modality="imu", stream="imu", product="D435I"),
+                             MonotonicClock())
+    with pytest.raises(DriverUnavailableError, match="no RealSense found for D435I$"):
+        await driver.start()
     await driver.stop()
 
 

@@ -123,6 +123,30 @@ async def test_depth_modes_from_the_sensor_and_a_mode_switch() -> None:
         device.close()
 
 
+async def test_old_mode_frames_after_a_switch_are_dropped() -> None:
+    """Frames taken with the previous mode can still arrive after a switch (issue 21, item 10)."""
+    device = SoftwareD435()
+    driver = RealSenseDriver(RealSenseConfig(name="depth", resolution=(640, 480), rate_hz=10.0), MonotonicClock(),
+                             device=device.device)
+    await driver.start()
+    device.feed(driver, "depth")
+    try:
+        await take(driver, 2)
+        await driver.apply(SensorConfig("depth", rate_hz=5.0, resolution=(640, 360)))
+        old = device.profiles[("depth", 640, 480, 15)].as_video_stream_profile()
+        for number in (90_001, 90_002):  # late frames of the old mode, as a camera delivers them
+            frame = rs.software_video_frame()
+            frame.pixels = np.full((480, 640), 7, np.uint16)
+            frame.bpp, frame.stride, frame.timestamp, frame.frame_number = 2, 640 * 2, 0.0, number
+            frame.domain, frame.profile = rs.timestamp_domain.hardware_clock, old
+            device.depth.on_video_frame(frame)
+        frames = await take(driver, 4)
+        assert all(f.data.shape == (360, 640) for f in frames) and driver._source.stale_frames >= 2
+    finally:
+        await driver.stop()
+        device.close()
+
+
 async def test_colour_stream_is_bgr() -> None:
     device = SoftwareD435()
     cfg = RealSenseConfig(name="colour", stream="color", modality="rgb")

@@ -253,3 +253,84 @@ def test_camera_that_refuses_a_size_is_reopened_and_reported(video: Path) -> Non
         assert "camera delivers 320x240, not 160x120" in applied.notes
     finally:
         source.close()
+
+
+class ModedCamera:
+    """cv2.VideoCapture as a UVC camera answers it through V4L2: a mode table per pixel format
+    (the fastest rate per size), MJPG only if ``mjpg`` (many USB 2 webcams: YUYV 720p at 10 fps)."""
+
+    MODES = {"MJPG": {(1280, 720): 30, (640, 360): 30}, "YUYV": {(1280, 720): 10, (640, 360): 30}}
+
+    def __init__(self, device, api, mjpg: bool = True) -> None:
+        self.fourcc, self.size, self.fps, self.mjpg = "YUYV", (640, 360), 30.0, mjpg
+
+    def isOpened(self) -> bool:
+        return True
+
+    def release(self) -> None:
+        pass
+
+    def set(self, prop: int, value: float) -> bool:
+        if prop == cv2.CAP_PROP_FOURCC:
+            wanted = "".join(chr((int(value) >> 8 * i) & 0xFF) for i in range(4))
+            self.fourcc = wanted if wanted == "YUYV" or self.mjpg else self.fourcc
+        elif prop == cv2.CAP_PROP_FRAME_WIDTH:
+            self.width = int(value)  # OpenCV sets the format once both are known
+        elif prop == cv2.CAP_PROP_FRAME_HEIGHT:
+            wanted = (getattr(self, "width", self.size[0]), int(value))
+            self.size = wanted if wanted in self.MODES[self.fourcc] else (640, 360)
+        elif prop == cv2.CAP_PROP_FPS:
+            self.fps = min(float(value), self.MODES[self.fourcc][self.size])
+        else:
+            return False
+        self.fps = min(self.fps, self.MODES[self.fourcc][self.size])  # a size change may lower the rate
+        return True
+
+    def get(self, prop: int) -> float:
+        values = {cv2.CAP_PROP_FRAME_WIDTH: self.size[0], cv2.CAP_PROP_FRAME_HEIGHT: self.size[1],
+                  cv2.CAP_PROP_FPS: self.fps, cv2.CAP_PROP_FOURCC: cv2.VideoWriter.fourcc(*self.fourcc)}
+        return float(values.get(prop, 0.0))
+
+
+def _moded_source(monkeypatch: pytest.MonkeyPatch, mjpg: bool, **cfg):
+    from respecd.drivers import uvc_capture
+
+    monkeypatch.setattr(uvc_capture.cv2, "VideoCapture", lambda device, api: ModedCamera(device, api, mjpg))
+    config = UVCConfig(name="rgb", device="/dev/video7", resolutions=[(1280, 720), (640, 360)], **cfg)
+    source = uvc_capture.UVCSource(config, MonotonicClock(), SensorConfig("rgb", rate_hz=30.0, resolution=(640, 360)),
+                                   threading.Event())
+    source.open()
+    return source
+
+
+def test_rate_is_read_back_after_a_size_change(monkeypatch: pytest.MonkeyPatch) -> None:
+    source = _moded_source(monkeypatch, mjpg=False)
+    assert source.applied.rate_hz == 30 and source.device_fps == 30
+    applied = source.reconfigure(SensorConfig("rgb", rate_hz=30.0, resolution=(1280, 720)))
+    assert applied.resolution == (1280, 720) and source.device_fps == 10  # YUYV 720p: 10 fps
+    assert applied.rate_hz == 10 and "camera delivers 10 fps at 1280x720" in applied.notes
+    back = source.reconfigure(SensorConfig("rgb", rate_hz=30.0, resolution=(640, 360)))
+    assert back.rate_hz == 30 and source.device_fps == 30
+
+
+def test_the_pixel_format_is_read_back(monkeypatch: pytest.MonkeyPatch) -> None:
+    from structlog.testing import capture_logs
+
+    with capture_logs() as logs:
+        refused = _moded_source(monkeypatch, mjpg=False, fourcc="MJPG")
+    assert refused.fourcc == "YUYV" and "camera streams YUYV, not MJPG" in refused.applied.notes
+    assert [e["got"] for e in logs if e["event"] == "uvc_fourcc_refused"] == ["YUYV"]
+    taken = _moded_source(monkeypatch, mjpg=True, fourcc="MJPG")
+    assert taken.fourcc == "MJPG" and not any("streams" in note for note in taken.applied.notes)
+    assert taken.reconfigure(SensorConfig("rgb", rate_hz=30.0, resolution=(1280, 720))).rate_hz == 30
+
+
+def test_v4l2_reads_give_up_after_a_second(monkeypatch: pytest.MonkeyPatch) -> None:
+    """CAP_PROP_READ_TIMEOUT_MSEC does nothing on V4L2; cap_v4l.cpp reads this variable instead."""
+    monkeypatch.delenv("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT", raising=False)
+    source = _moded_source(monkeypatch, mjpg=True)
+    import os
+
+    assert os.environ["OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT"] == "1" and source.select_timeout_s == 1
+    monkeypatch.setenv("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT", "4")  # the operator's own choice wins
+    assert _moded_source(monkeypatch, mjpg=True).select_timeout_s == 4
