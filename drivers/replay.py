@@ -6,8 +6,8 @@ the logged stream what the real sensor would have done under the controller's se
 the rules are ``respecd.replay.counterfactual``'s, shared with ``bench scenarios --log``:
 the first logged frame of each period of the new rate, images resized (above the logged
 resolution an upscale, said in ``notes``), radar points cut to the mode's maximum range and
-velocities folded into its +-v_max (figures from TI's range/velocity-prioritized xWR68xx demo
-cfgs, SENSORS.md 2.4 formulas: 56.25 m / 12.34 m; +-1.00 / +-3.21 m/s), nothing when disabled.
+velocities folded into its +-v_max (the figures of the radar driver's chirp table row for the
+mode and rate), nothing when disabled.
 
 Frames carry their logged time; the driver sleeps on the injected clock until that time,
 so a ``ManualClock`` replays in lockstep and a scaled clock at 1x or 2x. Radar frames whose
@@ -51,13 +51,12 @@ class ReplayConfig(DriverConfigBase):
     max_rate_hz: float = Field(
         30.0, ge=1, le=30, description="Highest rate the log can serve (its recorded frame rate)."
     )
-    radar_max_range_m: dict[str, float] = Field(
-        dict(counterfactual.RADAR_MAX_RANGE_M),
-        description="Maximum unambiguous range (m) per radar mode; points beyond are dropped on replay.",
+    radar_max_range_m: dict[str, float] | None = Field(
+        None, description="Maximum range (m) per radar mode, overriding the chirp table's; points beyond are dropped.",
     )
-    radar_max_velocity_m_s: dict[str, float] = Field(
-        dict(counterfactual.RADAR_MAX_VELOCITY_M_S),
-        description="Maximum radial velocity (m/s) per radar mode; faster points alias into +-v_max.",
+    radar_max_velocity_m_s: dict[str, float] | None = Field(
+        None, description="Maximum radial velocity (m/s) per radar mode, overriding the chirp table's; "
+        "faster points alias into +-v_max.",
     )
 
 

@@ -15,6 +15,7 @@ from respecd.drivers.base import DriverContext
 from respecd.drivers.replay import ReplayConfig, ReplayDriver
 from respecd.errors import DriverUnavailableError
 from respecd.messages import Frame, SensorConfig
+from respecd.radar.chirp import lookup
 from respecd.record.config import RecordingConfig
 from respecd.record.reader import SessionLog, open_log
 from respecd.record.recorder import Recorder
@@ -22,8 +23,8 @@ from respecd.record.recorder import Recorder
 RADAR_POINTS = np.array(
     [  # x, y (boresight), z, v, snr
         [0.0, 3.0, 0.0, 0.5, 20.0],
-        [1.0, 11.0, 0.0, -2.5, 15.0],  # inside 12.34 m; -2.5 m/s folds in range mode (+-1.00)
-        [0.0, 30.0, 0.0, 0.2, 9.0],  # beyond the velocity mode's 12.34 m
+        [1.0, 11.0, 0.0, -2.5, 15.0],  # inside 14.99 m; -2.5 m/s folds in velocity mode at 10 Hz (+-2.26)
+        [0.0, 30.0, 0.0, 0.2, 9.0],  # beyond both modes' 14.99 m
     ],
     dtype=np.float32,
 )
@@ -92,13 +93,13 @@ async def test_radar_modes_cut_range_and_fold_velocity(session: SessionLog) -> N
     driver = _driver(session, "radar", "radar", mode="range")
     frame = next(iter(session.frames("radar")))
     ranged = driver.counterfactual(frame).data
-    assert len(ranged) == 3
-    np.testing.assert_allclose(ranged[:, 3], [0.5, -0.5, 0.2], atol=1e-5)  # -2.5 folds into +-1.00
+    np.testing.assert_array_equal(ranged[:, :3], RADAR_POINTS[:2, :3])  # the 30 m point is out of range
+    np.testing.assert_allclose(ranged[:, 3], [0.5, -2.5], atol=1e-6)  # within the range row's +-10.8 m/s
     driver = _driver(session, "radar", "radar", mode="range")  # the same logged frame, delivered afresh
     await driver.apply(SensorConfig("radar", True, 10.0, mode="velocity"))
     fast = driver.counterfactual(frame).data
-    np.testing.assert_array_equal(fast[:, :3], RADAR_POINTS[:2, :3])  # 30 m point is out of range
-    np.testing.assert_allclose(fast[:, 3], [0.5, -2.5], atol=1e-6)
+    vmax = lookup("velocity", 10).max_velocity_mps  # 2.26 m/s: the row the real radar would run
+    np.testing.assert_allclose(fast[:, 3], [0.5, -2.5 + 2 * vmax], atol=1e-5)
 
 
 async def test_frames_follow_the_clock_and_stop_cleanly(session: SessionLog) -> None:

@@ -10,8 +10,9 @@ policy and a benchmarked one see the same frames.
 * resolution: images are resized (area averaging down, bilinear up; depth by nearest
   neighbour both ways, so no depth between a foreground and a background is made up) and
   ground-truth boxes follow; above the logged resolution it is an upscale;
-* radar mode: points beyond the mode's maximum unambiguous range are removed and radial
-  velocities alias into its +-v_max (FMCW folding);
+* radar mode: points beyond the maximum range of the radar driver's chirp table row for
+  (mode, rate) are removed and radial velocities alias into its +-v_max (FMCW folding): the
+  table the real radar, the simulator and this share (``respecd.radar.chirp``);
 * disabled: nothing.
 """
 
@@ -28,9 +29,6 @@ import numpy as np
 from respecd.messages import Frame, RadarMode, Resolution, SensorConfig
 
 GRID_EPS = 1e-9  # logged times on the grid itself (k / r) count as its first frame
-# per radar mode, from TI's range/velocity-prioritized xWR68xx demo cfgs (SENSORS.md 2.4 formulas)
-RADAR_MAX_RANGE_M = {"range": 56.25, "velocity": 12.34}
-RADAR_MAX_VELOCITY_M_S = {"range": 1.00, "velocity": 3.21}
 IMAGES = ("rgb", "thermal", "depth")
 
 
@@ -89,16 +87,25 @@ def scale_boxes(gt: Any, sx: float, sy: float) -> Any:
     return scaled
 
 
-def radar_points(points: np.ndarray, mode: RadarMode | None, max_range_m: Mapping[str, float],
-                 max_velocity_m_s: Mapping[str, float]) -> np.ndarray:
-    """The point cloud (N, 5: x, y, z, v, snr) as the radar in ``mode`` would have seen it."""
+def radar_limits(mode: RadarMode, rate_hz: float, max_range_m: Mapping[str, float] | None = None,
+                 max_velocity_m_s: Mapping[str, float] | None = None) -> tuple[float, float]:
+    """(max range m, max radial velocity m/s) of the chirp table row, unless overridden per mode."""
+    from respecd.radar.chirp import lookup
+
+    row = lookup(mode, rate_hz)
+    return (max_range_m or {}).get(mode, row.max_range_m), (max_velocity_m_s or {}).get(mode, row.max_velocity_mps)
+
+
+def radar_points(points: np.ndarray, mode: RadarMode | None, rate_hz: float,
+                 max_range_m: Mapping[str, float] | None = None,
+                 max_velocity_m_s: Mapping[str, float] | None = None) -> np.ndarray:
+    """The point cloud (N, 5: x, y, z, v, snr) as the radar in ``mode`` at ``rate_hz`` would have seen it."""
     if mode is None or not points.size:
         return points
+    max_range, vmax = radar_limits(mode, rate_hz, max_range_m, max_velocity_m_s)
     distance = np.linalg.norm(points[:, :3], axis=1)
-    points = points[distance <= max_range_m.get(mode, np.inf)].copy()
-    vmax = max_velocity_m_s.get(mode)
-    if vmax:  # FMCW Doppler folds into [-vmax, vmax)
-        points[:, 3] = (points[:, 3] + vmax) % (2 * vmax) - vmax
+    points = points[distance <= max_range].copy()
+    points[:, 3] = (points[:, 3] + vmax) % (2 * vmax) - vmax  # FMCW Doppler folds into [-vmax, vmax)
     return points.astype(np.float32, copy=False)
 
 
@@ -108,7 +115,7 @@ def transform(frame: Frame, applied: SensorConfig, max_range_m: Mapping[str, flo
     if not applied.enabled:
         return None
     if frame.modality == "radar":
-        data = radar_points(frame.data, applied.mode, max_range_m or {}, max_velocity_m_s or {})
+        data = radar_points(frame.data, applied.mode, applied.rate_hz, max_range_m, max_velocity_m_s)
         return replace(frame, data=data)
     if frame.modality in IMAGES and applied.resolution is not None and frame.data.ndim >= 2:
         return resize(frame, applied.resolution)

@@ -152,8 +152,7 @@ class LogEvaluator:
         return result
 
     def _deliver(self, modality: str, index: int, config: SensorConfig) -> Frame:
-        frame = counterfactual.transform(self.frames.frame(modality, index), config, counterfactual.RADAR_MAX_RANGE_M,
-                                         counterfactual.RADAR_MAX_VELOCITY_M_S)
+        frame = counterfactual.transform(self.frames.frame(modality, index), config)
         assert frame is not None, "only enabled sensors are picked"
         return frame
 
