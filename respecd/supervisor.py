@@ -123,7 +123,12 @@ def driver_runner(driver: Driver, sink: Callable[[Frame], None]) -> Callable[[],
 
 
 async def _stop_quietly(driver: Driver) -> None:
-    try:
-        await asyncio.wait_for(driver.stop(), timeout=2.0)
-    except Exception:  # a driver that cannot stop cleanly must not block the others
-        log.exception("driver_stop_failed", sensor=driver.name)
+    """Stop within 2 s. ``asyncio.wait``, not ``wait_for``: on Python <= 3.11 wait_for loses a
+    cancellation that arrives as the inner call finishes, and the supervise loop then never ends."""
+    stopping = asyncio.ensure_future(driver.stop())
+    done, _ = await asyncio.wait({stopping}, timeout=2.0)
+    if not done:
+        stopping.cancel()
+        log.error("driver_stop_failed", sensor=driver.name, error="stop took longer than 2 s")
+    elif stopping.exception() is not None:  # a driver that cannot stop cleanly must not block the others
+        log.error("driver_stop_failed", sensor=driver.name, exc_info=stopping.exception())

@@ -41,3 +41,13 @@ def no_leaked_threads():
         if thread.is_alive() and not thread.daemon:
             leaked.append(thread.name)
     assert not leaked, f"threads left running: {leaked}"
+
+
+@pytest.fixture
+def radar(tmp_path: Path):
+    """An IWR6843 on two pseudo-terminals streaming the real capture (tests/fake_radar.py)."""
+    from fake_radar import FakeRadar, capture_frames
+
+    fake = FakeRadar(tmp_path, capture_frames())
+    yield fake
+    fake.unplug()

@@ -48,6 +48,13 @@ def capture_frames() -> list[bytes]:
     return split_packets(CAPTURE.read_bytes())  # 101 packets of 608-1088 B (18 of them 768 B)
 
 
+def radar_config(fake: FakeRadar, **settings: object):
+    """An iwr6843 profile entry on ``fake``'s two ports (the tests' timeouts in ``settings``)."""
+    from respecd.drivers.iwr6843 import IWR6843Config
+
+    return IWR6843Config(name="radar", cli_port=str(fake.cli_path), data_port=str(fake.data_path), **settings)
+
+
 class FakeRadar:
     """An IWR6843 on two pseudo-terminals, reachable through symlinks in ``folder``."""
 

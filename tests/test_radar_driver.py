@@ -8,7 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from fake_radar import REAL, FakeRadar, capture_frames
+from fake_radar import REAL, FakeRadar, capture_frames, radar_config
 from pydantic import ValidationError
 
 from respecd.clock import MonotonicClock
@@ -25,17 +25,10 @@ def _row_lines(mode: str, rate: int, command: str) -> list[str]:
     """The lines of ``command`` in the ISK cfg the driver sends for a table row."""
     return [line for line in cfg.render(lookup(mode, rate)) if line.split()[0] == command]  # type: ignore[arg-type]
 
-@pytest.fixture
-def radar(tmp_path: Path):
-    fake = FakeRadar(tmp_path, capture_frames())
-    yield fake
-    fake.unplug()
-
 
 def _config(fake: FakeRadar, **overrides: object) -> IWR6843Config:
-    settings = {"name": "radar", "cli_port": str(fake.cli_path), "data_port": str(fake.data_path),
-                "cli_timeout_s": 0.5, "reconnect_initial_s": 0.05, "reconnect_max_s": 0.2} | overrides
-    return IWR6843Config(**settings)
+    quick = {"cli_timeout_s": 0.5, "reconnect_initial_s": 0.05, "reconnect_max_s": 0.2}
+    return radar_config(fake, **(quick | overrides))
 
 
 async def _take(driver: IWR6843Driver, count: int, timeout: float = 5.0) -> list:

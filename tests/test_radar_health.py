@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import serial
 import structlog
-from fake_radar import CAPTURE, FakeRadar, capture_frames, split_packets
+from fake_radar import CAPTURE, FakeRadar, radar_config, split_packets
 from structlog.testing import capture_logs
 
 from respecd.clock import MonotonicClock
@@ -28,18 +28,10 @@ RANGE_10 = SensorConfig(modality="radar", mode="range", rate_hz=10)
 VELOCITY_20 = SensorConfig(modality="radar", mode="velocity", rate_hz=20)
 
 
-@pytest.fixture
-def radar(tmp_path: Path):
-    fake = FakeRadar(tmp_path, capture_frames())
-    yield fake
-    fake.unplug()
-
 
 def _config(fake: FakeRadar, **overrides: object) -> IWR6843Config:
-    settings = {"name": "radar", "cli_port": str(fake.cli_path), "data_port": str(fake.data_path),
-                "cli_timeout_s": 0.3, "reconnect_initial_s": 0.05, "reconnect_max_s": 0.4,
-                "stall_timeout_s": 0.3} | overrides
-    return IWR6843Config(**settings)
+    quick = {"cli_timeout_s": 0.3, "reconnect_initial_s": 0.05, "reconnect_max_s": 0.4, "stall_timeout_s": 0.3}
+    return radar_config(fake, **(quick | overrides))
 
 
 async def _until(condition, timeout: float = 15.0) -> None:
