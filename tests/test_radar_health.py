@@ -30,7 +30,7 @@ VELOCITY_20 = SensorConfig(modality="radar", mode="velocity", rate_hz=20)
 
 
 def _config(fake: FakeRadar, **overrides: object) -> IWR6843Config:
-    quick = {"cli_timeout_s": 0.3, "reconnect_initial_s": 0.05, "reconnect_max_s": 0.4, "stall_timeout_s": 0.3}
+    quick = {"cli_timeout_s": 0.5, "reconnect_initial_s": 0.05, "reconnect_max_s": 0.4, "stall_timeout_s": 0.3}
     return radar_config(fake, **(quick | overrides))
 
 
@@ -161,7 +161,7 @@ async def test_a_present_but_misbehaving_data_port_is_logged_once_and_backed_off
 ) -> None:
     radar.data_mode = mode
     with capture_logs() as logs:
-        quick = _config(radar, stall_timeout_s=0.05, rate_hz=30, reconnect_max_s=0.2, cli_timeout_s=0.15)
+        quick = _config(radar, stall_timeout_s=0.05, rate_hz=30, reconnect_max_s=0.2, cli_timeout_s=0.3)
         driver = IWR6843Driver(quick, MonotonicClock())
         await driver.start()  # the CLI is fine: the board is there
         try:
@@ -178,7 +178,7 @@ async def test_a_present_but_misbehaving_data_port_is_logged_once_and_backed_off
 
 async def test_a_cli_error_at_start_is_one_line_without_traceback(radar: FakeRadar) -> None:
     radar.reject = ("sensorStart",)
-    driver = IWR6843Driver(_config(radar), MonotonicClock())
+    driver = IWR6843Driver(_config(radar, cli_timeout_s=1.0), MonotonicClock())  # no timeouts on a loaded CI
     with capture_logs() as logs:
         task = asyncio.create_task(supervise("radar", driver_runner(driver, lambda frame: None),
                                              backoff=Backoff(initial_s=0.05, max_s=0.2)))
