@@ -394,19 +394,21 @@ class IWR6843Driver(Driver):
         self.health.error(message)
         self.outage.trouble(kind, message, retry_in_s=0.0)  # the first attempt is now
         while self._running:
+            idle = False  # connected with the radar disabled on purpose: nothing to wait for
             async with self._lock:
                 await self._disconnect()
                 try:
                     await self._connect()
-                    self.applied = await self._switch(self._target(), force=True)
+                    target = self._target()
+                    self.applied = await self._switch(target, force=True)
                     kind, message = "stall", "configured, but no radar packets"
+                    idle = not target.enabled
                 except _RECOVERABLE as err:
                     kind, message = type(err).__name__, str(err)
-            if self.profile is not None and await self._packets_within(self._stall_limit_s()):
+            if idle or self.profile is not None and await self._packets_within(self._stall_limit_s()):
                 self.health.restarts += 1
                 self._suspect = None
-                self.outage.back(restarts=self.health.restarts, mode=self.profile.preference,
-                                 rate_hz=self.profile.rate_hz)
+                self.outage.back(restarts=self.health.restarts, mode=self.applied.mode, rate_hz=self.applied.rate_hz)
                 return
             self.health.error(message)
             self.outage.trouble(kind, message, retry_in_s=delay)

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import serial
 import structlog
-from fake_radar import CAPTURE, FakeRadar, radar_config, split_packets
+from fake_radar import CAPTURE, FakeRadar, capture_frames, radar_config, split_packets
 from structlog.testing import capture_logs
 
 from respecd.clock import MonotonicClock
@@ -196,3 +196,22 @@ def test_structlog_capture_sees_the_drivers_logger() -> None:
     with capture_logs() as logs:
         structlog.get_logger("respecd.drivers.iwr6843").bind(sensor="x").warning("radar.lost")
     assert logs and logs[0]["sensor"] == "x"
+
+
+async def test_an_outage_while_disabled_ends_when_the_board_is_back(tmp_path: Path) -> None:
+    """A radar the controller switched off has nothing to stream: reconnected is recovered."""
+    frames = capture_frames()
+    fake = FakeRadar(tmp_path, frames)
+    driver = IWR6843Driver(_config(fake), MonotonicClock())
+    await driver.start()
+    try:
+        await driver.apply(SensorConfig(modality="radar", enabled=False, mode="range", rate_hz=10))
+        fake.unplug()
+        await _until(lambda: driver.outage.active)
+        fake = FakeRadar(tmp_path, frames)
+        await _until(lambda: not driver.outage.active)
+        assert fake.commands[-1] == "sensorStop" and not fake.streaming.is_set()
+        assert driver.health.restarts == 1
+    finally:
+        await driver.stop()
+        fake.unplug()
