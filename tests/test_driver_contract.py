@@ -132,7 +132,7 @@ def _needs_sdk(enabled: bool) -> Driver:
 
 
 def _iwr6843(tmp_path: Path) -> Iterator[Rig]:
-    from test_radar_driver import FakeRadar, _capture_frames
+    from fake_radar import FakeRadar, capture_frames, radar_config
 
     from respecd.drivers.iwr6843 import IWR6843Config, IWR6843Driver
 
@@ -140,13 +140,12 @@ def _iwr6843(tmp_path: Path) -> Iterator[Rig]:
 
     def device() -> None:
         if not fakes:
-            fakes.append(FakeRadar(tmp_path, _capture_frames()))
+            fakes.append(FakeRadar(tmp_path, capture_frames()))
 
     def make(enabled: bool) -> Driver:
         device()
         fake = fakes[-1]
-        config = IWR6843Config(name="radar", cli_port=str(fake.cli_path), data_port=str(fake.data_path),
-                               cli_timeout_s=0.5, reconnect_initial_s=0.05, reconnect_max_s=0.2, enabled=enabled)
+        config = radar_config(fake, cli_timeout_s=0.5, reconnect_initial_s=0.05, reconnect_max_s=0.2, enabled=enabled)
         return IWR6843Driver(config, MonotonicClock())
 
     def unplugged() -> Driver:
