@@ -132,3 +132,17 @@ def test_a_frozen_policy_runs_from_a_read_only_state_dir(tmp_path: Path) -> None
     blocker.write_text("")
     result = _run("--duration", "1", "--policy", "exploit", "--state-dir", str(blocker / "state"), timeout=120)
     assert result.returncode == 0, result.stderr[-2000:]
+
+
+@pytest.mark.skipif(os.geteuid() != 0, reason="mounts a read-only tmpfs")
+def test_read_only_mounted_state_dir_is_exit_2_at_start(tmp_path: Path) -> None:
+    state = tmp_path / "ro"
+    state.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "ro,size=1m", "tmpfs", str(state)], check=False).returncode:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        result = _run("--duration", "3", "--state-dir", str(state))
+    finally:
+        subprocess.run(["umount", str(state)], check=False)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"--state-dir: {state}: state directory is not writable (Read-only file system)" in result.stderr
