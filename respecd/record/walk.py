@@ -127,6 +127,9 @@ class _Walk:
         if opcode == Opcode.CHUNK and _plausible_chunk(self.mm, pos, len(self.mm)):
             yield Damage(pos, end, f"chunk skipped: {err}")  # its framing is intact: skip just this chunk
             return end
+        if opcode in _READERS and _record_follows(self.mm, end):  # a bad body in an intact frame
+            yield Damage(pos, end, f"record skipped ({err})")
+            return end
         resume = _next_chunk(self.mm, pos + 1)
         if resume is None and end > len(self.mm):
             yield from self._cut_or_damage(pos, str(err))
@@ -226,6 +229,14 @@ def _next_chunk(mm: mmap.mmap, start: int) -> int | None:
                 pass
         at += 1
     return None
+
+
+def _record_follows(mm: mmap.mmap, at: int) -> bool:
+    """A known record header at ``at`` whose length fits the file: the frame before it was intact."""
+    if at + _RECORD_HEAD.size > len(mm):
+        return False
+    opcode, length = _RECORD_HEAD.unpack_from(mm, at)
+    return opcode in _READERS and at + _RECORD_HEAD.size + length <= len(mm)
 
 
 def _length(mm: mmap.mmap, at: int) -> int:

@@ -112,7 +112,10 @@ def _base_profile(config: str | Path | None, session: Any) -> dict[str, Any]:
         return dict(load_profile(config).model_dump(mode="json"))
     recorded = session.profile_dict()
     if recorded is None:
-        raise InputError(f"{session.path}: the log has no recorded profile; pass the one it ran with: --config FILE")
+        damage = getattr(session, "damage", None)
+        why = f"the log's recorded profile was lost to damage ({damage[0].describe()})" if damage else \
+            "the log has no recorded profile"
+        raise InputError(f"{session.path}: {why}; pass the one it ran with: --config FILE")
     return dict(recorded)
 
 
