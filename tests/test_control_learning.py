@@ -323,3 +323,38 @@ def test_factored_exploration_is_per_block() -> None:
     assert explored == pytest.approx([0.375, 0.375], abs=0.03)
     both = sum(cells[0] != 0 and cells[1] != 0 for cells in picks) / len(picks)
     assert both == pytest.approx(0.375 ** 2, abs=0.03)
+
+
+def test_sensing_bandwidth_counts_the_bytes_each_running_sensor_makes() -> None:
+    from respecd.control.bandwidth import frame_bytes, sensing_bandwidth
+
+    rgb = SensorConfig("rgb", rate_hz=10.0, resolution=(640, 360))
+    depth = SensorConfig("depth", rate_hz=30.0, resolution=(640, 480))
+    radar = SensorConfig("radar", rate_hz=10.0, mode="range")
+    off = SensorConfig("thermal", enabled=False, rate_hz=9.0, resolution=(160, 120))
+    assert frame_bytes(rgb) == 640 * 360 * 3 and frame_bytes(depth) == 640 * 480 * 2 and frame_bytes(off) == 0.0
+    assert frame_bytes(radar, 10.0) - frame_bytes(radar, 0.0) == pytest.approx(10 * 20)  # 20 B per point
+    total = sensing_bandwidth([rgb, depth, radar, off], radar_points=5.0)
+    assert total == pytest.approx(640 * 360 * 3 * 10 + 640 * 480 * 2 * 30 + frame_bytes(radar, 5.0) * 10)
+
+
+def test_controller_charges_the_bandwidth_its_configuration_makes() -> None:
+    """The same scene, depth at 30 Hz or at 1 Hz: with a bandwidth weight the fast depth camera
+    costs its 18.4 MB/s, without one both score the same."""
+    from respecd.control.bandwidth import sensing_bandwidth
+
+    def reward(weight: float, depth_hz: float) -> dict[str, float]:
+        config = ControllerConfig(factors=("motion",), contribution="none", min_dwell_s=0.0,
+                                  reward=RewardWeights(bandwidth=weight, beta=0.0), learning=Learning(init="zero"))
+        slot = Slot("depth", "depth", ((640, 480),), (1.0, 30.0))
+        controller = Controller(config, ActionSpace((slot,), "product"), StateSpace(config.factors, Thresholds()))
+        controller.follow({"depth": SensorConfig("depth", rate_hz=depth_hz, resolution=(640, 480))})
+        return controller.step(Observation(t=0.0, n_percepts=1, motion_image=3.5)).terms
+
+    fast, slow = reward(0.01, 30.0), reward(0.01, 1.0)
+    assert fast["bandwidth_mb_s"] == pytest.approx(640 * 480 * 2 * 30 / 1e6)
+    assert fast["bandwidth"] == pytest.approx(-0.01 * 18.432) and slow["bandwidth"] == pytest.approx(-0.01 * 0.6144)
+    assert fast["reward"] < slow["reward"]
+    assert reward(0.0, 30.0)["reward"] == reward(0.0, 1.0)["reward"]
+    depth = SensorConfig("depth", rate_hz=30.0, resolution=(640, 480))
+    assert fast["bandwidth_mb_s"] == pytest.approx(sensing_bandwidth([depth]) / 1e6)

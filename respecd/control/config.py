@@ -64,9 +64,10 @@ class Thresholds(StrictModel):
 
 class RewardWeights(StrictModel):
     """r = alpha*clip(dConfAgg, -kappa, kappa) + confidence_level*ConfAgg - beta*P - gamma*L
-    - staleness[motion]*D - delta*[switch].
+    - staleness[motion]*D - bandwidth*B - delta*[switch].
 
-    P includes the detector's compute; D is the contribution-weighted sensing delay.
+    P includes the detector's compute; D is the contribution-weighted sensing delay; B the
+    sensing bandwidth in MB/s.
     """
 
     alpha: float = Field(
@@ -88,6 +89,15 @@ class RewardWeights(StrictModel):
     )
     gamma: float = Field(1.0, ge=0, le=1000, description="Weight of latency, per second of mean perception latency.")
     delta: float = Field(0.05, ge=0, le=1000, description="Penalty of a configuration switch (the sensors re-arm).")
+    bandwidth: float = Field(
+        0.01,
+        ge=0,
+        le=1000,
+        description="Weight per MB/s of sensing bandwidth: the bytes per second the running configuration makes the "
+        "sensors produce (raw pixels, radar UART packets, IMU samples; respecd.control.bandwidth). 0.01 prices "
+        "1 MB/s like 0.2 W at beta 0.05: RGB 1280x720 at 30 Hz (83 MB/s) costs 0.83 a decision, the depth camera "
+        "at 640x480 and 30 Hz (18 MB/s) 0.18, at 1 Hz 0.006. 0: bytes are free (the paper's reward).",
+    )
     staleness: tuple[float, float, float] = Field(
         (0.0, 2.0, 4.0),
         description="Weight per second of sensing delay, by motion bin still / slow / fast. Sensing delay is how "

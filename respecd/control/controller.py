@@ -16,6 +16,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from respecd.control.actions import ActionSpace, Position, build_slots
+from respecd.control.bandwidth import sensing_bandwidth
 from respecd.control.baselines import heuristic_position, static_position
 from respecd.control.config import ALL_FACTORS, ControllerConfig
 from respecd.control.learned import LearnedStates
@@ -113,11 +114,12 @@ class Controller:
         power = obs.power_w
         if power is None:  # no rails: the sensors' model plus the detector's compute
             power = self._model_power(applied) + compute_power(obs.busy, self.config.reward.compute_w)
-        running = applied.values() if applied else self.space.requests(self.position)
+        running = tuple(applied.values()) if applied else self.space.requests(self.position)
         delay = sensing_delay(running, obs.contributions)
         motion = motion_bin(obs, self.states.thresholds)
+        bandwidth = sensing_bandwidth(running, obs.radar_points)
         terms = reward_terms(self.config.reward, self._prev_conf, obs.conf_agg, power, obs.latency_s, self._switched,
-                             delay, motion)
+                             delay, motion, bandwidth)
         reward = terms["reward"]
         if self.policy == "learn" and self.table is not None and self._prev_state is not None:
             terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state)

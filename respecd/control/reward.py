@@ -1,4 +1,5 @@
-"""The reward: r = α·clip(ConfAgg_t − ConfAgg_{t−1}, −κ, κ) + λ·ConfAgg_t − β·P_t − γ·L_t − σ_m·D_t − δ·[switch].
+"""The reward: r = α·clip(ConfAgg_t − ConfAgg_{t−1}, −κ, κ) + λ·ConfAgg_t − β·P_t − γ·L_t − σ_m·D_t − η·B_t
+− δ·[switch].
 
 Every term is returned so that each decision's log line shows why it was good or bad.
 P is the board power from the rails when readable, else the profile's per-sensor power
@@ -21,6 +22,11 @@ frame period, averaged over the detector's inputs by their contribution. Its wei
 depends on the motion bin: ConfAgg cannot see staleness (a detector is as sure of where a
 person *was* as of where they are), so without this term nothing pays for a fast rate and
 the compute term alone drives every sensor to 1 Hz, however fast the scene moves.
+
+B is the sensing bandwidth in MB/s (``respecd.control.bandwidth``: the bytes the running
+configuration makes the sensors produce), η its weight (``bandwidth``) — the paper's future
+work. Power alone prices the depth camera, which the detector does not read, at 1.2 W plus
+0.04 W per Hz: nearly free, though at 30 Hz it writes 18 MB/s.
 """
 
 from __future__ import annotations
@@ -68,9 +74,11 @@ def reward_terms(
     switched: bool,
     delay_s: float = 0.0,
     motion_bin: int = 0,
+    bandwidth_bps: float = 0.0,
 ) -> dict[str, float]:
     """Each weighted term and their sum under ``reward`` (the first step has no quality change).
-    ``delay_s``: the sensing delay; ``motion_bin``: 0 still, 1 slow, 2 fast."""
+    ``delay_s``: the sensing delay; ``motion_bin``: 0 still, 1 slow, 2 fast; ``bandwidth_bps``:
+    the sensing bandwidth, bytes per second."""
     change = 0.0 if conf_prev is None else conf_now - conf_prev
     quality = weights.alpha * min(max(change, -weights.kappa), weights.kappa)
     terms = {
@@ -79,11 +87,13 @@ def reward_terms(
         "power": -weights.beta * power_w,
         "latency": -weights.gamma * latency_s,
         "staleness": -weights.staleness[motion_bin] * delay_s,
+        "bandwidth": -weights.bandwidth * bandwidth_bps / 1e6,
         "switch": -weights.delta if switched else 0.0,
     }
     terms["reward"] = sum(terms.values())
     terms["power_w"] = power_w
     terms["latency_s"] = latency_s
     terms["delay_s"] = delay_s
+    terms["bandwidth_mb_s"] = bandwidth_bps / 1e6
     terms["conf_agg"] = conf_now
     return terms

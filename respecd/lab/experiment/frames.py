@@ -115,20 +115,3 @@ def truth(world: World, t: float, resolution: tuple[int, int]) -> tuple[np.ndarr
     from respecd.lab.detector.data import gt_arrays
 
     return gt_arrays(ground_truth(world.state_at(t), resolution))
-
-
-def frame_bytes(config: SensorConfig, radar_points: float = 0.0) -> float:
-    """Bytes one frame of this sensor puts on its link (raw pixels; radar as the TI UART packet)."""
-    from respecd.sim.radar_model import FRAME_OVERHEAD_BYTES, POINT_BYTES
-
-    if not config.enabled:
-        return 0.0
-    if config.modality == "rgb" and config.resolution:
-        return config.resolution[0] * config.resolution[1] * 3.0  # BGR8
-    if config.modality in ("thermal", "depth") and config.resolution:
-        return config.resolution[0] * config.resolution[1] * 2.0  # 16-bit counts / millimetres
-    if config.modality == "radar":
-        return FRAME_OVERHEAD_BYTES + POINT_BYTES * radar_points
-    if config.modality == "imu":
-        return 6 * 4.0  # six float32
-    return 0.0

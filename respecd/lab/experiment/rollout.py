@@ -42,12 +42,12 @@ import numpy as np
 from respecd.applied import AppliedConfigs
 from respecd.clock import Clock
 from respecd.control.actions import Position
+from respecd.control.bandwidth import sensing_bandwidth
 from respecd.control.controller import Controller
 from respecd.control.features import Sample
 from respecd.control.loop import ControlLoop
 from respecd.control.probe import SystemSample
 from respecd.lab.detector.metrics import ImageResult
-from respecd.lab.experiment.frames import frame_bytes
 from respecd.lab.experiment.latency import Latency
 from respecd.lab.experiment.outcomes import Evaluator
 from respecd.messages import Decision, SensorConfig
@@ -221,7 +221,7 @@ class Rollout:
                 applied: dict[str, SensorConfig], images: list[ImageResult], points: float) -> WindowRecord:
         compute_s = self.compute_s(applied)
         energy = sum(self.powers[n].watts(c) for n, c in applied.items()) * self.period
-        bandwidth = sum(frame_bytes(c, points) * c.rate_hz for c in applied.values() if c.enabled)
+        bandwidth = sensing_bandwidth(applied.values(), points)
         return WindowRecord(scenario, now, position, decision, 1000.0 * compute_s / self.period, energy, bandwidth,
                             images)
 
