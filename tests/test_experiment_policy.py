@@ -121,12 +121,58 @@ def test_bench_scenarios_json(trained: Path, profile_path: Path, tmp_path: Path,
         assert row["compute_ms_per_s"] > 0 and row["energy_j"] > 0 and row["bandwidth_bps"] > 0
     assert set(result["summary"]) == {"rl_vs_static", "rl_vs_heuristic"}
     for versus in result["summary"].values():
-        assert set(versus) == {"compute_reduction", "map50_drop"}
+        assert set(versus) == {"compute_reduction", "map50_drop", "bandwidth_reduction"}
     static = [r for r in rows if r["policy"] == "static"]
     assert all(r["action"].startswith("rgb 640x360@30Hz thermal 320x240@30Hz") for r in static)
     assert "| scenario | policy |" in md.read_text() and png.stat().st_size > 10_000
     assert len(OutcomeCache.for_fingerprint(result["detector_fingerprint"], tmp_path / "cache" / "respecd" /
                                             "experiment")) > 0  # the outcomes went to the user cache dir
+
+
+def test_bench_scenarios_pools_world_sets_and_reports_their_spread(trained: Path, profile_path: Path,
+                                                                  tmp_path: Path, monkeypatch) -> None:
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    base = ["bench", "scenarios", "--random-detector", "--profile", str(profile_path), "--table", str(trained),
+            "--duration", "2", "--latency-repeats", "1", "--seed", "3000"]
+    one, two = tmp_path / "one.json", tmp_path / "two.json"
+    assert cli_main([*base, "--json", str(one)]) == 0
+    latency = ["--latency", str(one)]  # the same latency: the first set must repeat exactly
+    assert cli_main([*base, *latency, "--worlds", "2", "--json", str(two), "--markdown", str(tmp_path / "t.md")]) == 0
+    single, pooled = json.loads(one.read_text()), json.loads(two.read_text())
+    n = len(load_profile(profile_path).simulation.scenarios)
+    assert pooled["worlds"] == 2 and pooled["world_seeds"] == [3000, 3000 + 2 * n - 1]
+    assert [s["seeds"] for s in pooled["sets"]] == [list(range(3000, 3000 + n)), list(range(3000 + n, 3000 + 2 * n))]
+    assert pooled["sets"][0]["pooled"] == single["pooled"]  # set 0 is the one-set run
+    for policy in ("static", "heuristic", "rl"):
+        figures = pooled["pooled"][policy]
+        assert set(figures) == {"map50", "compute_ms_per_s", "energy_j", "bandwidth_bps"}
+        per_set = [s["pooled"][policy] for s in pooled["sets"]]
+        for metric in ("compute_ms_per_s", "energy_j", "bandwidth_bps"):
+            low, high = pooled["spread"][policy][metric]
+            assert low == min(v[metric] for v in per_set) and high == max(v[metric] for v in per_set)
+            assert low - 1 <= figures[metric] <= high + 1  # a mean over the sets lies inside their range
+        assert figures["energy_j"] == pytest.approx(np.mean([v["energy_j"] for v in per_set]), abs=0.02)
+    versus = pooled["summary"]["rl_vs_heuristic"]
+    assert versus["bandwidth_reduction"] == pytest.approx(
+        1 - pooled["pooled"]["rl"]["bandwidth_bps"] / pooled["pooled"]["heuristic"]["bandwidth_bps"], abs=1e-4)
+    stats = pooled["statistics"]["scenarios"]
+    assert set(stats) == set(load_profile(profile_path).simulation.scenarios)
+    for c in stats.values():
+        assert c["worlds"] == 2 and c["instants"] == 2 * 2 and 2 <= c["people"] <= 6 and c["targets"] >= 0
+        assert len(c["rl"]["map50_by_set"]) == 2
+    assert set(pooled["statistics"]["pooled"]["map50_difference_95"]) == {
+        "static_minus_rl", "heuristic_minus_rl", "static_minus_best_other"}
+    assert "| scenario | worlds | people |" in (tmp_path / "t.md").read_text()
+
+
+def test_worlds_needs_the_simulator(trained: Path, profile_path: Path, tmp_path: Path, capsys) -> None:
+    log = tmp_path / "x.mcap"
+    log.write_bytes(b"")
+    base = ["bench", "scenarios", "--random-detector", "--profile", str(profile_path), "--table", str(trained)]
+    assert cli_main([*base, "--worlds", "2", "--log", str(log)]) == 2
+    assert cli_main([*base, "--worlds", "0"]) == 2
+    err = capsys.readouterr().err
+    assert "--worlds: a recorded log has one set" in err and "--worlds: expected at least 1" in err
 
 
 def test_bench_with_a_pinned_latency_repeats_a_run(trained: Path, profile_path: Path, tmp_path: Path,

@@ -1,9 +1,10 @@
-"""The six paper scenarios under static, heuristic and RL: accuracy, compute, energy, bandwidth.
+"""The simulator's scenarios under static, heuristic and RL: accuracy, compute, energy, bandwidth.
 
-``respecd bench scenarios [--json OUT] [--quick] [--log LOG]``. Runs on the simulated rover
-(held-out world seeds, never used by ``train-policy``) or, with ``--log``, counterfactually
-on a recorded session. Also writes a Markdown table (``--markdown``) and a figure
-(``--figure``). See docs/RESULTS.md for what the figures mean.
+``respecd bench scenarios [--json OUT] [--quick] [--worlds N] [--log LOG]``. Runs on the
+simulated rover (held-out world seeds, never used by ``train-policy``; ``--worlds N``: N sets
+of worlds, pooled, with the spread over sets) or, with ``--log``, counterfactually on a
+recorded session. Also writes a Markdown table (``--markdown``) and a figure (``--figure``).
+See docs/RESULTS.md for what the figures mean.
 """
 
 from __future__ import annotations
@@ -24,6 +25,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=float, help="seconds per scenario (default: the profile's, 30)")
     parser.add_argument("--samples-per-s", type=float, default=1.0, help="detector outcomes scored per second")
     parser.add_argument("--seed", type=int, help="first world seed (default 1000: held out from training)")
+    parser.add_argument("--worlds", type=int, default=1, metavar="N",
+                        help="sets of worlds (one world per scenario each, seeds SEED .. SEED + N x scenarios - 1): "
+                             "figures pooled over the sets, with their spread (default 1)")
     parser.add_argument("--log", type=Path, help="run on a recorded MCAP session instead of the simulator")
     parser.add_argument("--markdown", type=Path, help="write the Markdown table here")
     parser.add_argument("--figure", type=Path, help="write the PNG figure here")
@@ -52,11 +56,12 @@ def _table_path(args: argparse.Namespace) -> Path:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from respecd.config import load_profile
     from respecd.lab.experiment import latency as lat
-    from respecd.lab.experiment.compare import run_all
+    from respecd.lab.experiment.compare import run_sets
     from respecd.lab.experiment.rollout import Rollout, controller_for
     from respecd.lab.experiment.setup import load_detector, rgb_resolutions
 
     start = time.monotonic()
+    _check(args)
     profile = load_profile(args.profile)
     table = _table_path(args)
     resolutions = rgb_resolutions(controller_for(profile, "static"))
@@ -66,14 +71,17 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         from respecd.lab.experiment.logbench import prepare_log
 
         evaluator, pieces, frames_for, extra = prepare_log(args, detector)
+        sets, people = [pieces], None
     else:
-        evaluator, pieces, frames_for, extra = _prepare_sim(args, profile, detector)
+        evaluator, sets, frames_for, extra = _prepare_sim(args, profile, detector)
+        people = _people(evaluator, profile)
     rollout = Rollout(profile, evaluator, {}, args.samples_per_s)
     repeats = args.latency_repeats or (2 if args.quick else 5)
     rollout.latency = pinned or lat.measure(detector, frames_for, resolutions, repeats)
-    bar = _bar(args, 3 * sum(max(1, int(round(p.duration_s / rollout.period))) for p in pieces))
+    windows = sum(max(1, int(round(p.duration_s / rollout.period))) for pieces in sets for p in pieces)
+    bar = _bar(args, 3 * windows)
     try:
-        result = run_all(profile, rollout, pieces, table, (lambda p, r: bar.update()) if bar else None)
+        result = run_sets(profile, rollout, sets, table, (lambda p, r: bar.update()) if bar else None, people)
     finally:
         if bar:
             bar.close()
@@ -87,19 +95,35 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     return result
 
 
+def _check(args: argparse.Namespace) -> None:
+    from respecd.errors import InputError
+
+    if args.worlds < 1:
+        raise InputError(f"--worlds: expected at least 1, got {args.worlds}")
+    if args.worlds > 1 and args.log is not None:
+        raise InputError("--worlds: a recorded log has one set of scenes (drop --worlds or --log)")
+
+
 def _prepare_sim(args: argparse.Namespace, profile: Any, detector: Any) -> tuple:
-    """The simulator as the source: held-out world seeds, one piece per scenario."""
+    """The simulator as the source: held-out world seeds, one piece per scenario and world set."""
     from respecd.lab.experiment import latency as lat
-    from respecd.lab.experiment.rollout import Piece
+    from respecd.lab.experiment.compare import world_sets
     from respecd.lab.experiment.setup import make_evaluator
     from respecd.lab.experiment.training import EVAL_SEED
 
     evaluator = make_evaluator(detector, profile, not args.no_cache, args.cache_dir)
     duration = args.duration or (QUICK_DURATION_S if args.quick else profile.simulation.scenario_duration_s)
     seed = EVAL_SEED if args.seed is None else args.seed
-    pieces = [Piece(name, seed + i, duration) for i, name in enumerate(profile.simulation.scenarios)]
-    frames_for = lat.sim_frames(evaluator.world(pieces[0], profile.simulation), evaluator.inputs)
-    return evaluator, pieces, frames_for, {"duration_s_per_scenario": duration, "world_seed": seed}
+    sets = world_sets(profile.simulation.scenarios, seed, args.worlds, duration)
+    frames_for = lat.sim_frames(evaluator.world(sets[0][0], profile.simulation), evaluator.inputs)
+    extra = {"duration_s_per_scenario": duration, "world_seed": seed, "worlds": args.worlds,
+             "world_seeds": [seed, seed + args.worlds * len(sets[0]) - 1]}
+    return evaluator, sets, frames_for, extra
+
+
+def _people(evaluator: Any, profile: Any) -> Any:
+    """How many persons a piece's world places (the statistics count them)."""
+    return lambda piece: len(evaluator.world(piece, profile.simulation).state_at(0.0).targets)
 
 
 def _bar(args: argparse.Namespace, total: int) -> Any:
@@ -113,18 +137,33 @@ def _bar(args: argparse.Namespace, total: int) -> Any:
 
 
 def summary(result: dict[str, Any]) -> str:
-    """What a person reads after a run: the whole-run figures per policy and the headline."""
-    lines = [f"{'policy':<10} {'mAP@0.5':>8} {'compute ms/s':>13} {'energy J':>9} {'bandwidth MB/s':>15}"]
-    for policy, v in result.get("overall", {}).items():
+    """What a person reads after a run: the pooled figures per policy, their spread over the
+    world sets, and the headline."""
+    from respecd.lab.experiment.report import drop_text, number, reduction_text
+
+    spread = result.get("spread", {})
+    sets = result.get("worlds", 1)
+    lines = [f"{'policy':<10} {'mAP@0.5':>8} {'compute ms/s':>13} {'energy J':>9} {'bandwidth MB/s':>15}"
+             + (f"   (pooled over {sets} world sets; [min, max] over sets)" if sets > 1 else "")]
+    for policy, v in result.get("pooled", {}).items():
         m = "n/a" if v.get("map50") is None else f"{v['map50']:.3f}"
-        lines.append(f"{policy:<10} {m:>8} {v['compute_ms_per_s']:>13.0f} {v['energy_j']:>9.1f} "
-                     f"{v['bandwidth_bps'] / 1e6:>15.2f}")
+        line = (f"{policy:<10} {m:>8} {v['compute_ms_per_s']:>13.0f} {v['energy_j']:>9.1f} "
+                f"{v['bandwidth_bps'] / 1e6:>15.2f}")
+        if sets > 1 and policy in spread:
+            s = spread[policy]
+            line += (f"   mAP [{number(s['map50'][0], '.3f')}, {number(s['map50'][1], '.3f')}]"
+                     f" compute [{s['compute_ms_per_s'][0]:.0f}, {s['compute_ms_per_s'][1]:.0f}]"
+                     f" MB/s [{s['bandwidth_bps'][0] / 1e6:.2f}, {s['bandwidth_bps'][1] / 1e6:.2f}]")
+        lines.append(line)
     for name, v in result.get("summary", {}).items():
-        reduction, drop = v["compute_reduction"], v["map50_drop"]
-        compute = "n/a" if reduction is None else f"{abs(100 * reduction):.1f} % {'less' if reduction >= 0 else 'more'}"
-        accuracy = "n/a" if drop is None else f"{abs(drop):.3f} {'lower' if drop >= 0 else 'higher'}"
-        lines.append(f"{name.replace('_', ' ')}: {compute} compute, mAP@0.5 {accuracy}")
-    lines.append(f"{len(result.get('scenarios', []))} scenario runs in {result.get('wall_s', 0):.0f} s; "
+        lines.append(f"{name.replace('_', ' ')}: {reduction_text(v['compute_reduction'])} compute, "
+                     f"{reduction_text(v.get('bandwidth_reduction'))} bandwidth, mAP@0.5 {drop_text(v['map50_drop'])}")
+    diffs = result.get("statistics", {}).get("pooled", {}).get("map50_difference_95", {})
+    for name, interval in diffs.items():
+        if interval:
+            lines.append(f"mAP@0.5 {name.replace('_', ' ')}: 95 % interval [{interval[0]:+.3f}, {interval[1]:+.3f}] "
+                         "(bootstrap over worlds)")
+    lines.append(f"{len(result.get('scenarios', []))} scenario rows in {result.get('wall_s', 0):.0f} s; "
                  "all figures: --json OUT (and --markdown, --figure)")
     return "\n".join(lines)
 

@@ -64,14 +64,20 @@ def _match(image: ImageResult, threshold: float) -> tuple[np.ndarray, np.ndarray
     return scores, tp, keep
 
 
-def average_precision(images: list[ImageResult], threshold: float) -> float:
-    """COCO 101-point interpolated AP at one IoU threshold; NaN when there is no ground truth."""
+def ap_parts(images: list[ImageResult], threshold: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """What AP needs of a set of images, which pools by concatenation: the scored detections'
+    confidences, their true-positive flags, and the number of (non-ignored) ground-truth boxes."""
     n_gt = int(sum((~im.gt_ignore).sum() for im in images))
-    if n_gt == 0:
-        return float("nan")
     parts = [_match(im, threshold) for im in images]
     scores = np.concatenate([p[0][p[2]] for p in parts]) if parts else np.zeros(0)
     tp = np.concatenate([p[1][p[2]] for p in parts]) if parts else np.zeros(0, dtype=bool)
+    return scores, tp, n_gt
+
+
+def ap_from_parts(scores: np.ndarray, tp: np.ndarray, n_gt: int) -> float:
+    """COCO 101-point interpolated AP of pooled ``ap_parts``; NaN when there is no ground truth."""
+    if n_gt == 0:
+        return float("nan")
     if len(scores) == 0:
         return 0.0
     order = np.argsort(-scores, kind="stable")
@@ -84,6 +90,11 @@ def average_precision(images: list[ImageResult], threshold: float) -> float:
     idx = np.searchsorted(recall, points, side="left")
     sampled = np.where(idx < len(precision), precision[np.minimum(idx, len(precision) - 1)], 0.0)
     return float(sampled.mean())
+
+
+def average_precision(images: list[ImageResult], threshold: float) -> float:
+    """COCO 101-point interpolated AP at one IoU threshold; NaN when there is no ground truth."""
+    return ap_from_parts(*ap_parts(images, threshold))
 
 
 def mean_ap(images: list[ImageResult]) -> dict[str, float]:

@@ -14,39 +14,76 @@ MODALITY_ROWS = (("rgb", "RGB rate (Hz)"), ("thermal", "thermal rate (Hz)"), ("r
                  ("depth", "depth rate (Hz)"))
 
 
-def _fmt(value: Any, spec: str) -> str:
+def number(value: Any, spec: str) -> str:
     return "n/a" if value is None else format(value, spec)
 
 
+def reduction_text(reduction: float | None) -> str:
+    return "n/a" if reduction is None else f"{abs(100 * reduction):.1f} % {'less' if reduction >= 0 else 'more'}"
+
+
+def drop_text(drop: float | None) -> str:
+    return "n/a" if drop is None else f"{abs(drop):.3f} {'lower' if drop >= 0 else 'higher'}"
+
+
+def _range(values: list[Any] | None, spec: str, scale: float = 1.0) -> str:
+    if not values or values[0] is None:
+        return "n/a"
+    return f"{values[0] / scale:{spec}}–{values[1] / scale:{spec}}"
+
+
 def markdown(result: dict[str, Any]) -> str:
-    """The per-scenario table, the overall figures and the summary."""
-    lines = ["| scenario | policy | stabilized action | mAP@0.5 | compute ms/s | core share | energy J | "
-             "bandwidth MB/s |", "|---|---|---|---:|---:|---:|---:|---:|"]
+    """The per-scenario table (pooled over the world sets), the pooled figures with their
+    spread over the sets, what each scenario's mAP rests on, and the summary."""
+    stats = result.get("statistics", {}).get("scenarios", {})
+    lines = ["| scenario | policy | stabilized action | mAP@0.5 | ± (SE) | compute ms/s | core share | energy J | "
+             "bandwidth MB/s |", "|---|---|---|---:|---:|---:|---:|---:|---:|"]
     for row in result["scenarios"]:
-        lines.append(f"| {row['scenario']} | {row['policy']} | {row['action']} | {_fmt(row['map50'], '.3f')} | "
-                     f"{row['compute_ms_per_s']:.0f} | {row['compute_ms_per_s'] / 1000:.2f} | "
+        se = stats.get(row["scenario"], {}).get(row["policy"], {}).get("map50_se")
+        lines.append(f"| {row['scenario']} | {row['policy']} | {row['action']} | {number(row['map50'], '.3f')} | "
+                     f"{number(se, '.3f')} | {row['compute_ms_per_s']:.0f} | {row['compute_ms_per_s'] / 1000:.2f} | "
                      f"{row['energy_j']:.1f} | {row['bandwidth_bps'] / 1e6:.2f} |")
-    lines += ["", "| policy (whole run) | mAP@0.5 | compute ms/s | core share | energy J | bandwidth MB/s |",
-              "|---|---:|---:|---:|---:|---:|"]
-    for policy, v in result.get("overall", {}).items():
-        lines.append(f"| {policy} | {_fmt(v['map50'], '.3f')} | {v['compute_ms_per_s']:.0f} | "
-                     f"{v['compute_ms_per_s'] / 1000:.2f} | {v['energy_j']:.1f} | {v['bandwidth_bps'] / 1e6:.2f} |")
+    spread = result.get("spread", {})
+    lines += ["", "| policy (pooled) | mAP@0.5 | over sets | compute ms/s | over sets | energy J | bandwidth MB/s | "
+              "over sets |", "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for policy, v in result.get("pooled", result.get("overall", {})).items():
+        s = spread.get(policy, {})
+        lines.append(f"| {policy} | {number(v['map50'], '.3f')} | {_range(s.get('map50'), '.3f')} | "
+                     f"{v['compute_ms_per_s']:.0f} | {_range(s.get('compute_ms_per_s'), '.0f')} | "
+                     f"{v['energy_j']:.1f} | {v['bandwidth_bps'] / 1e6:.2f} | "
+                     f"{_range(s.get('bandwidth_bps'), '.2f', 1e6)} |")
+    if stats:
+        lines += ["", "| scenario | worlds | people | scored instants | targets |", "|---|---:|---:|---:|---:|"]
+        for name, c in stats.items():
+            lines.append(f"| {name} | {c['worlds']} | {number(c['people'], 'd')} | {c['instants']} | {c['targets']} |")
     lines.append("")
     for name, v in result["summary"].items():
-        reduction, drop = v["compute_reduction"], v["map50_drop"]
-        compute = "n/a" if reduction is None else f"{abs(100 * reduction):.1f} % {'less' if reduction >= 0 else 'more'}"
-        accuracy = "n/a" if drop is None else f"{abs(drop):.3f} {'lower' if drop >= 0 else 'higher'}"
-        lines.append(f"- **{name.replace('_', ' ')}**: {compute} compute, mAP@0.5 {accuracy} (absolute)")
+        lines.append(f"- **{name.replace('_', ' ')}**: {reduction_text(v['compute_reduction'])} compute, "
+                     f"{reduction_text(v.get('bandwidth_reduction'))} bandwidth, mAP@0.5 "
+                     f"{drop_text(v['map50_drop'])} (absolute)")
+    diffs = result.get("statistics", {}).get("pooled", {}).get("map50_difference_95", {})
+    for name, interval in diffs.items():
+        if interval:
+            lines.append(f"- mAP@0.5 {name.replace('_', ' ')}: 95 % interval {interval[0]:+.3f} to {interval[1]:+.3f} "
+                         "(bootstrap over worlds)")
     return "\n".join(lines) + "\n"
 
 
 def _bars(ax: Any, scenarios: list[str], policies: list[str], values: dict[str, list[float]],
-          labels: dict[str, list[str]] | None = None) -> None:
+          labels: dict[str, list[str]] | None = None,
+          ranges: dict[str, list[list[float] | None]] | None = None) -> None:
+    """Grouped bars, one group per scenario; ``ranges``: a [min, max] whisker per bar."""
     width = 0.8 / len(policies)
     x = np.arange(len(scenarios))
     for i, policy in enumerate(policies):
         pos = x - 0.4 + width * (i + 0.5)
-        bars = ax.bar(pos, values[policy], width, color=POLICY_COLORS.get(policy, "#555"), label=policy)
+        yerr = None
+        if ranges:
+            spans = [r or [v, v] for r, v in zip(ranges[policy], values[policy], strict=True)]
+            yerr = np.array([[max(v - lo, 0.0) for (lo, _), v in zip(spans, values[policy], strict=True)],
+                             [max(hi - v, 0.0) for (_, hi), v in zip(spans, values[policy], strict=True)]])
+        bars = ax.bar(pos, values[policy], width, color=POLICY_COLORS.get(policy, "#555"), label=policy,
+                      yerr=yerr, error_kw={"elinewidth": 0.7, "capsize": 1.5, "ecolor": "#333"})
         if labels:
             for bar, text in zip(bars, labels[policy], strict=True):
                 ax.text(bar.get_x() + bar.get_width() / 2, bar.get_height(), text, ha="center", va="bottom",
@@ -63,7 +100,7 @@ def figure(result: dict[str, Any], path: Path, title: str = "respecd bench scena
     policies = [p for p in ("static", "heuristic", "rl") if p in settings]
     scenarios = list(dict.fromkeys(r["scenario"] for r in result["scenarios"]))
     rows = [(m, label) for m, label in MODALITY_ROWS if any(m in settings[p][s] for p in policies for s in scenarios)]
-    fig, axes = plt.subplots(len(rows) + 2, 1, figsize=(11, 2.0 * (len(rows) + 2)), dpi=110, sharex=True)
+    fig, axes = plt.subplots(len(rows) + 3, 1, figsize=(11, 2.0 * (len(rows) + 3)), dpi=110, sharex=True)
     for ax, (modality, label) in zip(axes, rows, strict=False):
         cells = {p: [settings[p][s].get(modality, {}) for s in scenarios] for p in policies}
         _bars(ax, scenarios, policies, {p: [c.get("rate_hz", 0) for c in cells[p]] for p in policies},
@@ -72,15 +109,24 @@ def figure(result: dict[str, Any], path: Path, title: str = "respecd bench scena
         ax.set_ylabel(label, fontsize=8)
         ax.set_ylim(0, 48)  # head room for the rotated setting labels above 30 Hz bars
     table = {(r["scenario"], r["policy"]): r for r in result["scenarios"]}
-    ax_map, ax_cpu = axes[len(rows)], axes[len(rows) + 1]
-    _bars(ax_map, scenarios, policies, {p: [table[(s, p)]["map50"] or 0.0 for s in scenarios] for p in policies})
-    ax_map.set_ylabel("mAP@0.5", fontsize=8)
+    ax_map, ax_cpu, ax_bw = axes[len(rows)], axes[len(rows) + 1], axes[len(rows) + 2]
+    stats = result.get("statistics", {}).get("scenarios", {})
+    ranges = {p: [stats.get(s, {}).get(p, {}).get("map50_range") for s in scenarios] for p in policies}
+    sets = result.get("worlds", 1)
+    _bars(ax_map, scenarios, policies, {p: [table[(s, p)]["map50"] or 0.0 for s in scenarios] for p in policies},
+          ranges=ranges if sets > 1 else None)
+    ax_map.set_ylabel("mAP@0.5" + (f"\n(pooled, {sets} world sets;\nwhiskers: min-max)" if sets > 1 else ""),
+                      fontsize=8)
     ax_map.set_ylim(0, 1.05)
     _bars(ax_cpu, scenarios, policies,
           {p: [table[(s, p)]["compute_ms_per_s"] / 1000 for s in scenarios] for p in policies})
     ax_cpu.set_ylabel("compute (cores)", fontsize=8)
-    ax_cpu.set_xticks(np.arange(len(scenarios)), scenarios, fontsize=8, rotation=15)
-    ax_cpu.set_xlabel("scenario (bar labels: the setting each policy chose)", fontsize=8)
+    _bars(ax_bw, scenarios, policies,
+          {p: [table[(s, p)]["bandwidth_bps"] / 1e6 for s in scenarios] for p in policies})
+    ax_bw.set_yscale("log")
+    ax_bw.set_ylabel("sensing bandwidth\n(MB/s, log scale)", fontsize=8)
+    ax_bw.set_xticks(np.arange(len(scenarios)), scenarios, fontsize=8, rotation=15)
+    ax_bw.set_xlabel("scenario (bar labels: the setting each policy chose)", fontsize=8)
     axes[0].legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, title="policy")
     axes[0].set_title(title)
     fig.tight_layout()
