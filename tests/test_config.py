@@ -64,7 +64,7 @@ def _ablation_difference(name: str, key: str) -> tuple[object, object]:
 def test_paper_reward_ablation_differs_from_sim_rover_only_in_the_reward():
     base_reward, ablation_reward = _ablation_difference("sim-rover-paper-reward", "reward")
     assert ablation_reward == {**base_reward, "alpha": 4.0, "confidence_level": 0.0, "compute_w": 0.0,
-                               "staleness": (0.0, 0.0, 0.0)}
+                               "staleness": (0.0, 0.0, 0.0), "bandwidth": 0.0}
 
 
 def test_no_load_ablation_differs_from_sim_rover_only_in_the_learners_factors():
