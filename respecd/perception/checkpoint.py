@@ -17,6 +17,7 @@ from typing import Any
 
 import torch
 from pydantic import ValidationError
+from torch import nn
 
 from respecd.errors import ConfigError
 from respecd.perception.config import ModelSpec, resolve_weights
@@ -28,6 +29,15 @@ FORMAT = "respecd-fusion/1"
 def resolve(source: str) -> Path:
     """'builtin:NAME' -> the packaged weights file; anything else is a path."""
     return resolve_weights(source)
+
+
+def build(spec: ModelSpec) -> nn.Module:
+    """The network a spec describes: the CSP net, or the Darknet-backbone variant."""
+    if spec.backbone.startswith("darknet:"):
+        from respecd.perception.darknet_fusion import DarknetFusionNet
+
+        return DarknetFusionNet(spec)
+    return FusionNet(spec)
 
 
 def save(path: Path, model: FusionNet, extra: dict[str, Any] | None = None) -> None:
@@ -95,7 +105,7 @@ def load(source: str, expected: ModelSpec | None = None, map_location: str = "cp
         raise ConfigError(f"{path}: checkpoint has no valid model spec ({err.__class__.__name__})") from err
     if expected is not None:
         _check_match(path, spec, expected)
-    model = FusionNet(spec)
+    model = build(spec)
     try:
         model.load_state_dict(payload["state_dict"])
     except (KeyError, RuntimeError) as err:

@@ -43,6 +43,13 @@ class ModelSpec(StrictModel):
     2-core CPU in under 30 minutes and run 640x360 within the 120 ms budget.
     """
 
+    backbone: str = Field(
+        "csp",
+        pattern=r"^(csp|darknet:[A-Za-z0-9_.-]+)$",
+        description="'csp': the YOLOv8-style net (widths below); 'darknet:NAME': two copies of the backbone of the "
+        "Darknet cfg NAME shipped in respecd/perception/cfg/ (pretrained weights imported), fused at the inputs of "
+        "its yolo head (widths, depths and reg_max below are then unused).",
+    )
     aux_modalities: tuple[AuxModality, ...] = Field(
         ("thermal", "radar"),
         description="Non-RGB channels fed to backbone 2, in order (depth optional as a sixth channel).",

@@ -75,6 +75,23 @@ def parse_cfg(text: str, source: str = "<cfg>") -> list[Section]:
     return sections
 
 
+def with_classes(sections: list[Section], classes: int) -> list[Section]:
+    """The same network with ``classes`` outputs per anchor in every [yolo] layer (and the convolution
+    feeding it): how a COCO model becomes a person detector (``darknet_fusion.from_darknet`` keeps the
+    chosen classes' kernels)."""
+    out = list(sections)
+    for i, s in enumerate(sections):
+        if s.kind != "yolo" or int(s.options.get("classes", 20)) == classes:
+            continue
+        opts = _Opts(s, "<cfg>")
+        mask = opts.ints("mask", ",".join(str(k) for k in range(len(opts.floats("anchors")) // 2)))
+        conv = max(j for j in range(i) if sections[j].kind == "convolutional")
+        out[i] = Section(s.kind, {**s.options, "classes": str(classes)}, s.line)
+        out[conv] = Section("convolutional", {**sections[conv].options,
+                                              "filters": str(len(mask) * (5 + classes))}, sections[conv].line)
+    return out
+
+
 class _Opts:
     """Typed access to one section's options; errors name the cfg line."""
 
@@ -182,7 +199,9 @@ class Layer:
 class DarknetNet(nn.Module):
     """The layers of a Darknet cfg as PyTorch modules, evaluated in order."""
 
-    def __init__(self, sections: list[Section], in_channels: int | None = None, source: str = "<cfg>") -> None:
+    def __init__(self, sections: list[Section], in_channels: int | None = None, source: str = "<cfg>",
+                 keep: range | None = None) -> None:
+        """``keep``: the layer indices that get modules (others are bookkeeping only, no parameters)."""
         super().__init__()
         net = _Opts(sections[0], source)
         self.source = source
@@ -190,8 +209,10 @@ class DarknetNet(nn.Module):
         self.input_size = (net.int("width", 416), net.int("height", 416))
         self.layers: list[Layer] = []
         self.blocks = nn.ModuleList()
-        for section in sections[1:]:
+        for index, section in enumerate(sections[1:]):
             layer = self._build(section, _Opts(section, source))
+            if keep is not None and index not in keep:
+                layer.module = None
             self.layers.append(layer)
             self.blocks.append(layer.module or nn.Identity())
         self.yolo_indices = [i for i, layer in enumerate(self.layers) if layer.kind == "yolo"]
@@ -285,6 +306,19 @@ class DarknetNet(nn.Module):
 
     def conv_layers(self) -> list[ConvLayer]:
         return [layer.module for layer in self.layers if isinstance(layer.module, ConvLayer)]
+
+    def head_split(self) -> tuple[int, tuple[int, ...]]:
+        """Where the backbone ends: after the last [shortcut] before the first [yolo].
+
+        Returns that index and the backbone layers the head reads (the fusion taps).
+        """
+        first_yolo = self.yolo_indices[0] if self.yolo_indices else len(self.layers)
+        shortcuts = [i for i in range(first_yolo) if self.layers[i].kind == "shortcut"]
+        if not shortcuts:
+            raise InputError(f"{self.source}: no [shortcut] before the first [yolo]: cannot tell backbone from head")
+        split = shortcuts[-1] + 1
+        taps = {j for layer in self.layers[split:] for j in layer.inputs if 0 <= j < split}
+        return split, tuple(sorted(taps))
 
 
 def load_weights(net: DarknetNet, path: Path) -> dict[str, int]:

@@ -1,0 +1,79 @@
+"""The fusion net on pretrained Darknet backbones: a sensor that is off adds nothing, checkpoints round-trip,
+the detector runs and attributes with it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from respecd.errors import InputError
+from respecd.perception import checkpoint, darknet
+from respecd.perception.config import ModelSpec, PerceptionConfig
+from respecd.perception.darknet_fusion import DarknetFusionNet, from_darknet
+from respecd.perception.detector import FusionDetector, frames_from_arrays
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+NAME = "yolo-fastest-1.1_body"
+SPEC = ModelSpec(backbone=f"darknet:{NAME}", aux_modalities=("thermal",))
+
+
+@pytest.fixture
+def weights(shared_data: Path) -> Path:
+    return shared_data.parent / "pretrained" / "yolo_fastest" / f"{NAME}.weights"
+
+
+@pytest.fixture
+def pair(shared_data: Path) -> tuple[torch.Tensor, torch.Tensor]:
+    """A real registered visible/infrared pair (TarDAL's M3FD sample), 640x480, as 0..1 planes."""
+    root = shared_data / "tardal_ir_vis_samples"
+    vis = cv2.resize(cv2.imread(str(root / "vi" / "M3FD_00471.png")), (640, 480))
+    ir = cv2.resize(cv2.imread(str(root / "ir" / "M3FD_00471.png"), cv2.IMREAD_GRAYSCALE), (640, 480))
+    rgb = torch.from_numpy(vis[:, :, ::-1].copy()).permute(2, 0, 1).float()[None] / 255
+    return rgb, torch.from_numpy(ir).float()[None, None] / 255
+
+
+def test_a_sensor_that_is_off_adds_nothing(weights: Path, pair) -> None:
+    model = from_darknet(SPEC, weights).eval()
+    ref = darknet.load(weights.with_suffix(".cfg"), weights)
+    rgb, ir = pair
+    with torch.inference_mode():
+        rgb_only = model(torch.cat([rgb, torch.zeros_like(ir)], 1), torch.zeros(1, 1))
+        ir_only = model(torch.cat([torch.zeros_like(rgb), ir], 1), torch.ones(1, 1))
+        both = model(torch.cat([rgb, ir], 1), torch.ones(1, 1))
+        for ours, pretrained in zip(rgb_only, ref(rgb), strict=True):
+            torch.testing.assert_close(ours, pretrained, rtol=0, atol=1e-4)  # thermal off: the pretrained net
+        for ours, pretrained in zip(ir_only, ref(ir.expand(1, 3, -1, -1)), strict=True):
+            torch.testing.assert_close(ours, pretrained, rtol=0, atol=1e-4)  # RGB off: it on replicated IR
+        assert any((a - b).abs().max() > 0.1 for a, b in zip(both, rgb_only, strict=True))  # both on: fused
+
+
+def test_checkpoint_round_trip_and_detector(weights: Path, pair, tmp_path: Path) -> None:
+    model = from_darknet(SPEC, weights).eval()
+    path = tmp_path / "rgbt.pt"
+    checkpoint.save(path, model, {"data": "unit-test"})
+    loaded, _ = checkpoint.load(str(path), expected=SPEC)
+    assert isinstance(loaded, DarknetFusionNet)
+    rgb, ir = pair
+    x = torch.cat([rgb, ir], 1)
+    with torch.inference_mode():
+        for a, b in zip(model(x, torch.ones(1, 1)), loaded(x, torch.ones(1, 1)), strict=True):
+            assert torch.equal(a, b)
+    config = PerceptionConfig(weights=str(path), model=SPEC)
+    detector = FusionDetector.load(config)
+    vis = (rgb[0].permute(1, 2, 0).numpy()[:, :, ::-1] * 255).astype(np.uint8)
+    thermal = (ir[0, 0].numpy() * 255).astype(np.uint8)
+    percept = detector.infer(frames_from_arrays(vis, thermal), attribute=True)
+    assert percept.detections and percept.contributions is not None
+    assert set(percept.contributions) >= {"rgb", "thermal"}
+    assert abs(percept.contributions["rgb"] + percept.contributions["thermal"] - 1) < 1e-5
+    assert all(0 <= d.box[0] < d.box[2] <= 640 and 0 <= d.box[1] < d.box[3] <= 480 for d in percept.detections)
+
+
+def test_unknown_backbone_is_a_clear_error() -> None:
+    with pytest.raises(InputError, match=r"no packaged Darknet cfg nope.cfg \(shipped: .*yolo-fastest-1.1_body"):
+        checkpoint.build(ModelSpec(backbone="darknet:nope"))
