@@ -55,11 +55,15 @@ def test_eval_command_on_real_llvip_pairs(shared_data, tmp_path: Path, capsys) -
                      "--out", str(out), "--scale", "0.25", "--threads", "1", "--quiet"])
     assert code == 0
     report = json.loads((out / "eval.json").read_text())
-    assert report["frames"]["llvip"] == 6  # the six annotated pairs
-    assert set(report["map"]["llvip"]) == {"all", "no-rgb", "no-thermal", "no-radar", "rgb-only"}
+    assert report["frames"]["llvip_pairs"] == 6  # the six annotated pairs
+    assert set(report["map"]["llvip_pairs"]) == {"all", "no-rgb", "no-thermal", "no-radar", "rgb-only"}
+    assert report["map50"] == report["map"]["all"]["all"]["map50"]  # the real-folder top-level keys
+    assert isinstance(report["detections"], int) and isinstance(report["detections_without_rgb"], int)
+    assert set(report["contributions"]) >= {"rgb", "thermal"}  # flat: the mean scene scores
+    assert report["contributions_by_condition"]["all"] == report["contributions"]
     assert (out / "contributions.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     text = (out / "eval.md").read_text()
-    assert "| llvip | 6 |" in text and "mAP@0.5" in text
+    assert "| llvip_pairs | 6 |" in text and "mAP@0.5" in text
     assert "wrote" in capsys.readouterr().out
 
 

@@ -3,9 +3,12 @@ contribution scores per condition (day / night / occlusion / motion), as a Markd
 a PNG bar chart and JSON.
 
 ``--data sim`` renders held-out frames of the simulated scenarios (world seeds training
-never uses); a folder in the LLVIP layout is evaluated pair by pair at half resolution.
-Detections are scored down to confidence 0.01 (the usual mAP protocol), not the
-daemon's operating threshold.
+never uses); a folder (LLVIP/VOC pairs, COCO json, YOLO txt; see ``lab/detector/datasets``)
+is evaluated image by image at ``--scale`` (its val split if it has one). Detections are
+scored down to confidence 0.01 (the usual mAP protocol), not the daemon's operating
+threshold; the detection counts use the operating threshold. For a folder, eval.json also
+has the top-level ``map50``, ``contributions`` (mean scene scores), ``detections`` and
+``detections_without_rgb``.
 """
 
 from __future__ import annotations
@@ -19,16 +22,25 @@ EVAL_SCORE_THRESHOLD = 0.01
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", default="sim", help="'sim' (held-out simulated scenes) or an LLVIP-layout folder")
-    parser.add_argument("--weights", default="builtin:sim-rover", help="checkpoint path or builtin:NAME")
+    parser.add_argument("--data", default="sim",
+                        help="'sim' (held-out simulated scenes) or a folder: LLVIP/VOC pairs, COCO json, YOLO txt")
+    parser.add_argument("--weights", default="builtin:sim-rover",
+                        help="checkpoint path, builtin:NAME, or a Darknet .weights file (imported untrained)")
     parser.add_argument("--out", type=Path, default=Path("out/eval"),
                         help="folder for eval.md, contributions.png, eval.json")
     parser.add_argument("--frames", type=int, default=40, help="sim: frames per scenario (default 40)")
     parser.add_argument("--rgb", default="640x360", help="sim: RGB resolution WxH (default 640x360)")
-    parser.add_argument("--scale", type=float, default=0.5, help="LLVIP: image scale (default 0.5 of 1280x1024)")
+    parser.add_argument("--scale", type=float, default=0.5,
+                        help="folder data: image scale (default 0.5: LLVIP's 1280x1024 -> 640x512)")
+    parser.add_argument("--split", choices=("auto", "all", "train", "val"), default="auto",
+                        help="folder data: which images (auto: the val split if the folder has one, else all)")
+    parser.add_argument("--modality", choices=("auto", "rgb", "thermal"), default="auto",
+                        help="folder data of one modality: which (auto: single-channel images are thermal)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
     parser.add_argument("--no-progress", "--quiet", dest="quiet", action="store_true",
                         help="no progress bars (--quiet is the old name)")
+    parser.add_argument("--card", action="store_true",
+                        help="folder data: also record the top-level results in the checkpoint's card (WEIGHTS .json)")
 
 
 def _resolution(text: str) -> tuple[int, int]:
@@ -47,30 +59,89 @@ def main(args: argparse.Namespace) -> int:
     from respecd.lab.detector import report as report_mod
     from respecd.lab.detector.evaluate import evaluate, sim_eval_set
     from respecd.perception.config import PerceptionConfig
-    from respecd.perception.detector import FusionDetector
 
     torch.set_num_threads(args.threads)
     pcfg = PerceptionConfig(weights=args.weights, score_threshold=EVAL_SCORE_THRESHOLD)
+    detector = _detector(args.weights, pcfg)
     if args.data == "sim":
         size = _resolution(args.rgb)
-        detector = FusionDetector.load(pcfg.model_copy(update={"model": _spec_of(args.weights)}))
         samples = sim_eval_set(detector.config, args.frames, size, progress=not args.quiet)
         title = f"Simulated rover, held-out scenes, RGB {size[0]}x{size[1]} ({args.weights})"
+        summary = None
     else:
-        from respecd.lab.detector.data import LlvipSource
-
-        root = Path(args.data)
-        if not root.is_dir():
-            raise InputError(f"--data {args.data}: expected 'sim' or an LLVIP-layout folder")
-        detector = FusionDetector.load(pcfg.model_copy(update={"model": _spec_of(args.weights)}))
-        source = LlvipSource(root, detector.config, args.scale)
-        samples = [source[i] for i in range(len(source))]
-        title = f"LLVIP layout {root.name} ({len(samples)} pairs, scale {args.scale}) ({args.weights})"
+        samples, title = _folder_samples(args, detector.config)
     result = evaluate(detector, samples, progress=not args.quiet)
-    paths = report_mod.write(result, args.out, title)
+    if args.data != "sim":
+        summary = folder_summary(result)
+        if args.card:
+            _record_in_card(args, summary, len(samples), title)
+    paths = report_mod.write(result, args.out, title, summary)
     print(report_mod.markdown(result, title))
     print(f"wrote {paths['markdown']}, {paths['png']}, {paths['json']}")
     return 0
+
+
+def _folder_samples(args: argparse.Namespace, config) -> tuple[list, str]:
+    """The folder's evaluation images: its val split when it has one (else all), ``--split`` to choose."""
+    from respecd.lab.detector.datasets import FolderSource, open_folder
+
+    root = Path(args.data)
+    if not root.is_dir():
+        raise InputError(f"--data {args.data}: expected 'sim' or a dataset folder (LLVIP/VOC, COCO json, YOLO txt)")
+    folder = open_folder(root, config.model.classes, args.modality, hold_out=False)
+    split = args.split if args.split != "auto" else ("val" if folder.val else "all")
+    items = {"all": folder.train + folder.val, "train": folder.train, "val": folder.val}[split]
+    if not items:
+        raise InputError(f"--data {args.data}: the {split} split is empty")
+    source = FolderSource(items, config, args.scale, cache=1, scenario=root.name)  # decoded one at a time
+    mods = "+".join(sorted(folder.modalities))
+    return source, f"{root.name}: {folder.kind}, {split} split, {len(source)} images ({mods}), scale {args.scale} " \
+                    f"({args.weights})"
+
+
+def folder_summary(result: dict) -> dict:
+    """Top-level eval.json keys for a real folder: mAP@0.5, mean scene contributions, detection counts."""
+    contributions = result["contributions"].get("all", {})
+    return {
+        "map50": result["map"]["all"]["all"]["map50"],
+        "contributions": contributions,
+        "detections": result["detections"]["all"]["all"],
+        "detections_without_rgb": result["detections"]["all"]["no-rgb"],
+    }
+
+
+def _record_in_card(args: argparse.Namespace, summary: dict, images: int, title: str) -> None:
+    """The measured figures go into the model card, with the command that measured them."""
+    import json
+    import sys
+
+    from respecd.perception import checkpoint
+
+    if args.weights.endswith(".weights"):
+        raise InputError("--card: a Darknet .weights file has no respecd card (import it with respecd train --init)")
+    card = checkpoint.resolve(args.weights).with_suffix(".json")
+    body = json.loads(card.read_text(encoding="utf-8")) if card.is_file() else {}
+    body.setdefault("evaluations", {})[Path(args.data).name] = {
+        **summary, "images": images, "what": title, "command": "respecd " + " ".join(sys.argv[1:]),
+    }
+    card.write_text(json.dumps(body, indent=2) + "\n", encoding="utf-8")
+
+
+def _detector(weights: str, pcfg):
+    """The checkpoint's own net; a Darknet ``.weights`` file is imported untrained into the fusion net
+    (thermal = the same pretrained detector on replicated IR): the single-modality baselines."""
+    from respecd.perception.config import ModelSpec
+    from respecd.perception.detector import FusionDetector
+
+    if weights.endswith(".weights"):
+        from respecd.perception.darknet_fusion import from_darknet
+
+        if not Path(weights).is_file():
+            raise InputError(f"--weights {weights}: no such Darknet weights file")
+        spec = ModelSpec(backbone=f"darknet:{Path(weights).stem}", aux_modalities=("thermal",))
+        config = pcfg.model_copy(update={"model": spec})
+        return FusionDetector(from_darknet(spec, Path(weights)), config)
+    return FusionDetector.load(pcfg.model_copy(update={"model": _spec_of(weights)}))
 
 
 def _spec_of(weights: str):

@@ -81,7 +81,18 @@ def evaluate(detector: FusionDetector, samples: list[Sample], attribute: bool = 
         "contributions": {cond: _mean_dict(rows) for cond, rows in contrib.items()},
         "frames": {cond: len(by["all"]) for cond, by in results.items()},
         "attributed": {cond: len(rows) for cond, rows in contrib.items()},
+        "detections": {cond: {name: detection_count(images) for name, images in by.items()}
+                       for cond, by in results.items()},
     }
+
+
+def detection_count(images: list[ImageResult], threshold: float | None = None) -> int:
+    """Detections at the daemon's operating threshold (the profile default), as the paper counts them."""
+    if threshold is None:
+        from respecd.perception.config import PerceptionConfig
+
+        threshold = PerceptionConfig().score_threshold
+    return int(sum((im.pred_scores >= threshold).sum() for im in images))
 
 
 def _predict(detector: FusionDetector, x: torch.Tensor, presence: torch.Tensor, attribute: bool):

@@ -68,10 +68,14 @@ def bar_chart(report: dict, path: Path, title: str) -> None:
     plt.close(fig)
 
 
-def write(report: dict, out_dir: Path, title: str) -> dict[str, str]:
+def write(report: dict, out_dir: Path, title: str, summary: dict | None = None) -> dict[str, str]:
+    """eval.md, contributions.png and eval.json (the report, with ``summary``'s top-level keys first)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = {"markdown": out_dir / "eval.md", "png": out_dir / "contributions.png", "json": out_dir / "eval.json"}
     paths["markdown"].write_text(markdown(report, title), encoding="utf-8")
     bar_chart(report, paths["png"], title)
-    paths["json"].write_text(json.dumps(report, indent=2, default=float) + "\n", encoding="utf-8")
+    body = {**(summary or {}), **{k: v for k, v in report.items() if k not in (summary or {})}}
+    if summary and "contributions" in summary:
+        body["contributions_by_condition"] = report["contributions"]
+    paths["json"].write_text(json.dumps(body, indent=2, default=float) + "\n", encoding="utf-8")
     return {k: str(v) for k, v in paths.items()}
