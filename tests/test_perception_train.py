@@ -75,7 +75,7 @@ def test_train_command_on_the_simulator(tmp_path: Path, capsys) -> None:
 
 def test_train_command_rejects_bad_input(tmp_path: Path, capsys) -> None:
     assert cli_main(["train", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "x.pt")]) == 2
-    assert "expected 'sim' or an LLVIP-layout folder" in capsys.readouterr().err
+    assert "expected 'sim' or a dataset folder" in capsys.readouterr().err
     assert cli_main(["train", "--data", "sim", "--out", str(tmp_path / "x.pt"), "--epochs", "0"]) == 2
 
 

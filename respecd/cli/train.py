@@ -15,7 +15,8 @@ from respecd.errors import InputError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--data", required=True, help="'sim' (simulated rover) or an LLVIP-layout folder")
+    parser.add_argument("--data", required=True,
+                        help="'sim' (simulated rover) or a folder: LLVIP/VOC pairs, COCO json or YOLO txt")
     parser.add_argument("--out", required=True, type=Path, help="checkpoint to write (.pt); the card goes beside it")
     parser.add_argument("--epochs", type=int, default=10, help="epochs of --steps steps each (default 10)")
     parser.add_argument("--batch", type=int, default=16, help="crops per step (default 16)")
@@ -30,6 +31,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eval-frames", type=int, default=10,
                         help="sim: held-out frames per scenario evaluated for the model card (0: skip; default 10)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT.resume if present")
+    parser.add_argument("--init", help="start from this checkpoint (path or builtin:NAME) or Darknet .weights file")
+    parser.add_argument("--aux", default="thermal,radar",
+                        help="non-RGB modalities of a new net, in order (default thermal,radar)")
+    parser.add_argument("--freeze", default="", help="comma-separated parts kept fixed, e.g. rgb,head,fuse")
+    parser.add_argument("--patience", type=int, default=0,
+                        help="folder data: stop after N epochs without a better validation mAP@0.5 (0: never)")
+    parser.add_argument("--modality", choices=("auto", "rgb", "thermal"), default="auto",
+                        help="folder data of one modality: which (auto: single-channel images are thermal)")
+    parser.add_argument("--scale", type=float, default=0.5, help="folder data: decode images at this scale")
+    parser.add_argument("--val-limit", type=int, default=300,
+                        help="folder data: validation images scored per epoch, evenly spaced (default 300)")
+    parser.add_argument("--val-scale", type=float, help="folder data: validation image scale (default --scale)")
+    parser.add_argument("--crop", default="256x160", help="training crop WxH, multiples of 32 (default 256x160)")
+    parser.add_argument("--zoom", default="0.6,2.0", help="training zoom range LO,HI of the decoded image")
+    parser.add_argument("--pseudo-rgb", type=float, default=0.0,
+                        help="thermal-only data: share of crops whose RGB shows the thermal image (default 0)")
     parser.add_argument("--curve", type=Path, metavar="PNG",
                         help="training curve: loss per epoch and the held-out mAP (default: OUT with -curve.png)")
     parser.add_argument("--no-progress", "--quiet", dest="quiet", action="store_true",
@@ -37,21 +54,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    from respecd.lab.detector.augment import AugmentConfig
     from respecd.lab.detector.train import TrainConfig, train
     from respecd.perception.config import PerceptionConfig
 
     _check(args)
+    augment = AugmentConfig(size=_pair(args.crop, "--crop", int), scale=_pair(args.zoom, "--zoom", float, ","),
+                            pseudo_rgb=args.pseudo_rgb)
+    if augment.size[0] % 32 or augment.size[1] % 32:
+        raise InputError(f"--crop {args.crop}: both sides must be multiples of 32")
     cfg = TrainConfig(
         data=args.data, out=args.out, epochs=args.epochs, batch=args.batch, lr=args.lr, seed=args.seed,
         sim_segments=args.segments, steps_per_epoch=args.steps, threads=args.threads, resume=args.resume,
-        progress=not args.quiet,
+        progress=not args.quiet, augment=augment, init=args.init,
+        freeze=tuple(p for p in args.freeze.split(",") if p), patience=args.patience, modality=args.modality,
+        data_scale=args.scale, val_scale=args.val_scale, val_limit=args.val_limit,
     )
-    pcfg = PerceptionConfig()
+    aux = tuple(m for m in args.aux.split(",") if m)
+    try:
+        pcfg = PerceptionConfig(model={"aux_modalities": aux})
+    except ValueError as err:
+        raise InputError(f"--aux {args.aux}: expected modalities among thermal, radar, depth") from err
     summary = train(cfg, pcfg)
     card = {"name": args.out.stem, "data": args.data, "input_sizes": {"train_crop": list(cfg.augment.size),
             "rgb": [[1280, 720], [960, 540], [640, 360]]}, "train": summary, "metrics": None}
     if args.data == "sim" and args.eval_frames > 0:
         card["metrics"] = _card_metrics(args, pcfg)
+    elif summary["best_epoch"] is not None:
+        best = next(r for r in summary["curve"] if r["epoch"] == summary["best_epoch"])
+        card["metrics"] = {"val_map50": best["val_map50"], "best_epoch": summary["best_epoch"],
+                           "val": "the folder's val split (or a seeded 10 % hold-out)"}
     from respecd.perception import checkpoint
 
     model, _ = checkpoint.load(str(args.out))
@@ -77,7 +109,15 @@ def save_curve(summary: dict, metrics: dict | None, path: Path) -> Path:
     ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
     ax.set_ylabel("detection loss (box + class)")
     map50 = ((metrics or {}).get("map") or {}).get("all", {}).get("all", {}).get("map50")  # all modalities on
-    if isinstance(map50, (int, float)):
+    val = [(r["epoch"], r["val_map50"]) for r in summary.get("curve", []) if r.get("val_map50") is not None]
+    if val:  # folder data: the validation mAP of every epoch; the best one is the result
+        ax2 = ax.twinx()
+        ax2.plot(*zip(*val, strict=True), "s-", color="#c67a3a", label="validation mAP@0.5 (EMA weights)")
+        best = max(val, key=lambda v: v[1])
+        ax2.annotate(f"best {best[1]:.3f}", best, textcoords="offset points", xytext=(0, 8), ha="center")
+        ax2.set_ylim(0, 1)
+        ax2.set_ylabel("mAP@0.5", color="#c67a3a")
+    elif isinstance(map50, (int, float)):
         ax2 = ax.twinx()
         ax2.plot([epochs[-1]], [map50], "s", color="#c67a3a", label=f"held-out mAP@0.5 = {map50:.3f}")
         ax2.set_ylim(0, 1)
@@ -97,11 +137,19 @@ def _check(args: argparse.Namespace) -> None:
     if args.epochs < 1 or args.batch < 1:
         raise InputError(f"--epochs and --batch must be at least 1 (got {args.epochs}, {args.batch})")
     if args.data != "sim" and not Path(args.data).is_dir():
-        raise InputError(
-            f"--data {args.data}: expected 'sim' or an LLVIP-layout folder (visible/, infrared/, Annotations/)"
-        )
+        raise InputError(f"--data {args.data}: expected 'sim' or a dataset folder (LLVIP/VOC, COCO json, YOLO txt)")
     if args.out.suffix != ".pt":
         raise InputError(f"--out {args.out}: expected a .pt file name")
+
+
+def _pair(text: str, flag: str, kind, sep: str = "x") -> tuple:
+    try:
+        a, b = (kind(v) for v in text.lower().split(sep))
+    except ValueError as err:
+        raise InputError(f"{flag} {text}: expected two numbers separated by {sep!r}") from err
+    if a <= 0 or b <= 0 or (sep == "," and a > b):
+        raise InputError(f"{flag} {text}: expected positive numbers{' with LO <= HI' if sep == ',' else ''}")
+    return a, b
 
 
 def _card_metrics(args: argparse.Namespace, pcfg) -> dict:

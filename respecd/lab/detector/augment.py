@@ -28,6 +28,7 @@ class AugmentConfig:
     drop_aux_all: float = 0.15  # RGB only: "still detects by day with every non-RGB channel zeroed"
     drop_rgb: float = 0.1  # non-RGB only: thermal must carry the night alone
     target_bias: float = 0.7  # probability that a crop is centred near a person
+    pseudo_rgb: float = 0.0  # thermal-only samples: probability that RGB shows the thermal image (see pseudo_rgb)
 
 
 def scale_crop(s: Sample, w: int, h: int, rng: np.random.Generator, cfg: AugmentConfig) -> Sample:
@@ -73,7 +74,9 @@ def mosaic(samples: list[Sample], w: int, h: int, rng: np.random.Generator, cfg:
         boxes.append(part.boxes + [x1, y1, x1, y1])
         ignore.append(part.ignore)
         labels.append(part.labels)
-    return Sample(planes, presence, np.concatenate(boxes), np.concatenate(ignore), np.concatenate(labels))
+    has_rgb = all(s.meta.get("rgb", True) for s in samples)
+    return Sample(planes, presence, np.concatenate(boxes), np.concatenate(ignore), np.concatenate(labels),
+                  meta={"rgb": has_rgb})
 
 
 def augment(pool, rng: np.random.Generator, cfg: AugmentConfig) -> Sample:
@@ -86,6 +89,8 @@ def augment(pool, rng: np.random.Generator, cfg: AugmentConfig) -> Sample:
     if rng.random() < cfg.flip:
         s.planes = np.ascontiguousarray(s.planes[:, :, ::-1])
         s.boxes = np.stack([w - s.boxes[:, 2], s.boxes[:, 1], w - s.boxes[:, 0], s.boxes[:, 3]], 1).reshape(-1, 4)
+    if not s.meta.get("rgb", True) and len(s.presence) and rng.random() < cfg.pseudo_rgb:
+        pseudo_rgb(s, rng)
     if rng.random() < 0.5:
         gain = rng.uniform(*cfg.rgb_gain)
         s.planes[:3] = np.clip(s.planes[:3].astype(np.float32) * gain, 0, 255).astype(np.uint8)
@@ -93,7 +98,22 @@ def augment(pool, rng: np.random.Generator, cfg: AugmentConfig) -> Sample:
     return s
 
 
+def pseudo_rgb(s: Sample, rng: np.random.Generator) -> None:
+    """A thermal-only sample gets a grey 'visible' view of the same scene (random gamma, sometimes
+    inverted, per-channel tint), so fusion meets two cameras that both see the people."""
+    t = s.planes[3].astype(np.float32) / 255
+    if rng.random() < 0.3:
+        t = 1 - t
+    t = t ** rng.uniform(0.5, 2.0)
+    tint = rng.uniform(0.7, 1.0, size=3).astype(np.float32)
+    s.planes[:3] = np.clip(t[None] * tint[:, None, None] * 255, 0, 255).astype(np.uint8)
+    s.meta = {**s.meta, "rgb": True}
+
+
 def drop_modalities(s: Sample, rng: np.random.Generator, cfg: AugmentConfig) -> None:
+    """Sensor-off augmentation; a sample without RGB keeps its only modalities."""
+    if not s.meta.get("rgb", True):
+        return
     n_aux = len(s.presence)
     r = rng.random()
     if r < cfg.drop_aux_all:

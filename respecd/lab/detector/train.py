@@ -19,11 +19,13 @@ import structlog
 import torch
 from torch import nn
 
+from respecd.errors import InputError
 from respecd.lab.detector.augment import AugmentConfig, augment, collate
+from respecd.lab.detector.finetune import finite, freeze, initial_model, keep_frozen_eval, validation_map
 from respecd.lab.detector.loss import detection_loss
+from respecd.lab.detector.yolo_loss import yolo_loss
 from respecd.perception import checkpoint
 from respecd.perception.config import PerceptionConfig
-from respecd.perception.model import FusionNet
 
 log = structlog.get_logger(__name__)
 
@@ -44,6 +46,13 @@ class TrainConfig:
     resume: bool = False
     progress: bool = True
     augment: AugmentConfig = field(default_factory=AugmentConfig)
+    init: str | None = None  # checkpoint or Darknet .weights to start from (finetune.initial_model)
+    freeze: tuple[str, ...] = ()  # top-level parts kept as they are (e.g. "rgb", "head")
+    patience: int = 0  # folder data: stop after this many epochs without a better val mAP (0: never)
+    modality: str = "auto"  # folder data whose images are one modality: rgb, thermal or auto
+    data_scale: float = 0.5  # folder data: images decoded at this scale (LLVIP 1280x1024 -> 640x512)
+    val_scale: float | None = None  # validation images at this scale (default: data_scale)
+    val_limit: int = 300  # at most this many validation images per epoch (evenly spaced)
 
 
 class EMA:
@@ -67,20 +76,31 @@ class EMA:
 
 
 def build_pool(cfg: TrainConfig, pcfg: PerceptionConfig):
-    """The training samples: rendered sim frames (in memory) or a lazy LLVIP source."""
+    """Training samples and validation samples (None for sim): rendered sim frames, or a folder read lazily."""
     if cfg.data == "sim":
         from respecd.lab.detector.data import sim_samples
 
-        return sim_samples(pcfg, cfg.seed, cfg.sim_segments, cfg.sim_per_segment, show_progress=cfg.progress)
-    from respecd.lab.detector.data import LlvipSource
+        return sim_samples(pcfg, cfg.seed, cfg.sim_segments, cfg.sim_per_segment, show_progress=cfg.progress), None
+    from respecd.lab.detector.datasets import FolderSource, open_folder
 
-    return LlvipSource(Path(cfg.data), pcfg)
+    folder = open_folder(Path(cfg.data), pcfg.model.classes, cfg.modality, cfg.seed)
+    for note in folder.notes:
+        log.info("dataset", note=note)
+    log.info("dataset", kind=folder.kind, train=len(folder.train), val=len(folder.val),
+             modalities=",".join(sorted(folder.modalities)))
+    if not folder.train:
+        raise InputError(f"--data {cfg.data}: no training images (only a val split)")
+    step = max(1, math.ceil(len(folder.val) / max(1, cfg.val_limit)))
+    val_scale = cfg.val_scale or cfg.data_scale
+    return FolderSource(folder.train, pcfg, cfg.data_scale), FolderSource(folder.val[::step], pcfg, val_scale)
 
 
 def _optimizer(model: nn.Module, cfg: TrainConfig) -> torch.optim.Optimizer:
     decay: list[nn.Parameter] = []
     no_decay: list[nn.Parameter] = []
     for name, p in model.named_parameters():
+        if not p.requires_grad:
+            continue  # frozen (--freeze)
         (decay if p.ndim == 4 and name.endswith("weight") else no_decay).append(p)  # conv kernels only
     groups = [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
     return torch.optim.AdamW(groups, lr=cfg.lr, betas=(0.9, 0.999))
@@ -100,22 +120,32 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     started = time.perf_counter()
-    pool = build_pool(cfg, pcfg)
+    model = initial_model(cfg.init, pcfg.model)
+    pcfg = pcfg.model_copy(update={"model": model.spec})  # the data follows the net (e.g. its aux modalities)
+    pool, val = build_pool(cfg, pcfg)
     render_s = time.perf_counter() - started
-    model = FusionNet(pcfg.model).train()
+    freeze(model, cfg.freeze)
+    model.train()
+    keep_frozen_eval(model)
     ema = EMA(model)
     opt = _optimizer(model, cfg)
     steps = cfg.steps_per_epoch or max(1, len(pool) // cfg.batch)
     total = steps * cfg.epochs
     resume_path = cfg.out.with_name(cfg.out.name + ".resume")  # not *.pt: never packaged as weights
-    first_epoch = _maybe_resume(resume_path, cfg, model, ema, opt)
-    epoch_loss: list[tuple[int, float]] = []  # (epoch, smoothed training loss at its end), for the curve
+    first_epoch, curve = _maybe_resume(resume_path, cfg, model, ema, opt)
     for epoch in range(first_epoch, cfg.epochs):
         loss = _epoch(model, ema, opt, pool, cfg, epoch, steps, total)
-        epoch_loss.append((epoch + 1, round(float(loss), 5)))
+        score = validation_map(ema.model, val) if val is not None and len(val) else None
+        curve.append({"epoch": epoch + 1, "loss": round(loss, 4), "val_map50": finite(score)})
+        if _is_best(curve):
+            checkpoint.save(cfg.out, ema.model, {"data": cfg.data, "epoch": epoch + 1})
         checkpoint.save(resume_path, model, {"ema": ema.model.state_dict(), "optimizer": opt.state_dict(),
-                                             "epoch": epoch + 1, "ema_updates": ema.updates})
-        log.info("epoch_done", epoch=epoch + 1, of=cfg.epochs, loss=round(loss, 4))
+                                             "epoch": epoch + 1, "ema_updates": ema.updates, "curve": curve})
+        log.info("epoch_done", epoch=epoch + 1, of=cfg.epochs, loss=round(loss, 4), val_map50=finite(score))
+        if _stale(curve, cfg.patience):
+            log.info("early_stop", epoch=epoch + 1, patience=cfg.patience)
+            break
+    best = _best_epoch(curve)
     summary = {
         "data": cfg.data,
         "epochs": cfg.epochs,
@@ -127,27 +157,57 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
         "train_s": round(time.perf_counter() - started, 1),
         "seed": cfg.seed,
         "augment": asdict(cfg.augment),
-        "epoch_loss": epoch_loss,
+        "epoch_loss": [(r["epoch"], r["loss"]) for r in curve],  # for the CLI's curve
+        "init": cfg.init,
+        "freeze": list(cfg.freeze),
+        "curve": curve,
+        "best_epoch": best,
     }
-    checkpoint.save(cfg.out, ema.model, {"data": cfg.data, "train": summary})  # type: ignore[arg-type]  # a FusionNet copy
+    final = checkpoint.load(str(cfg.out))[0] if best is not None else ema.model
+    checkpoint.save(cfg.out, final, {"data": cfg.data, "train": summary})
     summary["out"] = str(cfg.out)
     return summary
 
 
-def _maybe_resume(path: Path, cfg: TrainConfig, model: FusionNet, ema: EMA, opt: torch.optim.Optimizer) -> int:
+def net_loss(model: nn.Module, raw, input_hw: tuple[int, int], gt_boxes: torch.Tensor, gt_labels: torch.Tensor,
+             gt_mask: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
+    """The training objective of the net's head: YOLOv8's for the CSP net, YOLOv3/v5's for a Darknet head."""
+    if hasattr(model, "yolo_specs"):
+        return yolo_loss(raw, model.yolo_specs, input_hw, gt_boxes, gt_labels, gt_mask)
+    return detection_loss(*raw, input_hw, gt_boxes, gt_labels, gt_mask, model.spec.reg_max)
+
+
+def _is_best(curve: list[dict]) -> bool:
+    scores = [r["val_map50"] for r in curve if r["val_map50"] is not None]
+    return bool(scores) and curve[-1]["val_map50"] is not None and curve[-1]["val_map50"] >= max(scores)
+
+
+def _best_epoch(curve: list[dict]) -> int | None:
+    scored = [r for r in curve if r["val_map50"] is not None]
+    return max(scored, key=lambda r: (r["val_map50"], -r["epoch"]))["epoch"] if scored else None
+
+
+def _stale(curve: list[dict], patience: int) -> bool:
+    best = _best_epoch(curve)
+    return patience > 0 and best is not None and curve[-1]["epoch"] - best >= patience
+
+
+def _maybe_resume(path: Path, cfg: TrainConfig, model: nn.Module, ema: EMA,
+                  opt: torch.optim.Optimizer) -> tuple[int, list[dict]]:
     if not cfg.resume or not path.is_file():
-        return 0
+        return 0, []
     saved, payload = checkpoint.load(str(path), expected=model.spec)
     model.load_state_dict(saved.state_dict())
     model.train()
+    keep_frozen_eval(model)
     ema.model.load_state_dict(payload["ema"])
     ema.updates = int(payload.get("ema_updates", 0))
     opt.load_state_dict(payload["optimizer"])
     log.info("resumed", path=str(path), epoch=payload["epoch"])
-    return int(payload["epoch"])
+    return int(payload["epoch"]), list(payload.get("curve", []))
 
 
-def _epoch(model: FusionNet, ema: EMA, opt: torch.optim.Optimizer, pool, cfg: TrainConfig, epoch: int,
+def _epoch(model: nn.Module, ema: EMA, opt: torch.optim.Optimizer, pool, cfg: TrainConfig, epoch: int,
            steps: int, total: int) -> float:
     from respecd.lab.detector.data import progress
 
@@ -160,8 +220,7 @@ def _epoch(model: FusionNet, ema: EMA, opt: torch.optim.Optimizer, pool, cfg: Tr
         for group in opt.param_groups:
             group["lr"] = lr_at(step, total, cfg.lr)
         x, presence, boxes, labels, mask = collate([augment(pool, rng, cfg.augment) for _ in range(cfg.batch)])
-        box_logits, cls_logits = model(x, presence)
-        loss, parts = detection_loss(box_logits, cls_logits, (h, w), boxes, labels, mask, model.spec.reg_max)
+        loss, parts = net_loss(model, model(x, presence), (h, w), boxes, labels, mask)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         nn.utils.clip_grad_norm_(model.parameters(), 10.0)

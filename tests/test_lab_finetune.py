@@ -1,0 +1,73 @@
+"""A short fine-tuning run from pretrained Darknet weights on real thermal images (HIT-UAV, COCO json):
+frozen parts stay as they were, backbone 2 learns, validation picks the epoch, the curve is drawn."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import pytest
+import torch
+
+from respecd.cli import main as cli_main
+from respecd.perception import checkpoint
+from respecd.perception.config import ModelSpec
+from respecd.perception.darknet_fusion import from_darknet
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+@pytest.fixture
+def tiny_hituav(shared_data: Path, tmp_path: Path) -> Path:
+    """The first four real HIT-UAV train images with people and two val ones, the dataset's own json spellings."""
+    src = shared_data / "hituav_thermal"
+    root = tmp_path / "hituav"
+    (root / "annotations").mkdir(parents=True)
+    for split, count in (("train", 4), ("val", 2)):
+        doc = json.loads((src / "annotations" / f"{split}.json").read_text(encoding="utf-8"))
+        people = {a["image_id"] for a in doc["annotation"] if a["category_id"] == 0}
+        images = [im for im in doc["images"] if im["id"] in people][:count]
+        ids = {im["id"] for im in images}
+        doc.update(images=images, annotation=[a for a in doc["annotation"] if a["image_id"] in ids])
+        (root / "annotations" / f"{split}.json").write_text(json.dumps(doc), encoding="utf-8")
+        (root / split).mkdir()
+        for im in images:
+            shutil.copy(src / split / im["filename"], root / split / im["filename"])
+    return root
+
+
+def test_fine_tune_from_darknet_weights(tiny_hituav: Path, shared_data: Path, tmp_path: Path, capsys) -> None:
+    weights = shared_data.parent / "pretrained" / "yolo_fastest" / "yolo-fastest-1.1_body.weights"
+    out = tmp_path / "rgbt.pt"
+    args = ["train", "--data", str(tiny_hituav), "--out", str(out), "--init", str(weights), "--aux", "thermal",
+            "--freeze", "rgb,head,fuse", "--epochs", "2", "--steps", "2", "--batch", "2", "--crop", "128x96",
+            "--zoom", "1.5,3", "--scale", "0.5", "--threads", "1", "--quiet"]
+    assert cli_main(args) == 0
+    model, payload = checkpoint.load(str(out))
+    assert model.spec.backbone == "darknet:yolo-fastest-1.1_body" and model.spec.aux_modalities == ("thermal",)
+    start = from_darknet(ModelSpec(backbone=model.spec.backbone, aux_modalities=("thermal",)), weights)
+    for part in ("rgb", "head", "fuse"):  # frozen: weights and batch-norm statistics exactly as imported
+        for a, b in zip(getattr(start, part).state_dict().values(), getattr(model, part).state_dict().values(),
+                        strict=True):
+            assert torch.equal(a, b), part
+    assert any(not torch.equal(a, b) for a, b in zip(start.aux.state_dict().values(),
+                                                       model.aux.state_dict().values(), strict=True))
+    curve = payload["train"]["curve"]
+    assert [r["epoch"] for r in curve] == [1, 2] and all(r["val_map50"] is not None for r in curve)
+    assert payload["train"]["best_epoch"] in (1, 2)
+    card = json.loads(out.with_suffix(".json").read_text())
+    assert card["metrics"]["val_map50"] == max(r["val_map50"] for r in curve)
+    assert out.with_name("rgbt-curve.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert cli_main(args + ["--epochs", "3", "--resume"]) == 0  # continues with epoch 3 only
+    assert [r["epoch"] for r in checkpoint.read(out)["train"]["curve"]] == [1, 2, 3]
+    assert "wrote" in capsys.readouterr().out
+
+
+def test_bad_fine_tune_arguments(tiny_hituav: Path, tmp_path: Path, capsys) -> None:
+    out = str(tmp_path / "x.pt")
+    assert cli_main(["train", "--data", str(tiny_hituav), "--out", out, "--init", "missing.weights"]) == 2
+    assert "no such Darknet weights file" in capsys.readouterr().err
+    assert cli_main(["train", "--data", str(tiny_hituav), "--out", out, "--freeze", "wings", "--steps", "1"]) == 2
+    assert "the net has no part 'wings'" in capsys.readouterr().err
+    assert cli_main(["train", "--data", str(tiny_hituav), "--out", out, "--crop", "100x64"]) == 2
+    assert "multiples of 32" in capsys.readouterr().err
