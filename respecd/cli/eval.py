@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import Any
 
 from respecd.errors import InputError
 
@@ -81,7 +82,7 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _folder_samples(args: argparse.Namespace, config) -> tuple[list, str]:
+def _folder_samples(args: argparse.Namespace, config) -> tuple[Any, str]:
     """The folder's evaluation images: its val split when it has one (else all), ``--split`` to choose."""
     from respecd.lab.detector.datasets import FolderSource, open_folder
 

@@ -17,12 +17,15 @@ only (about one forward pass of extra cost, not two).
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
 from respecd.perception.boxes import postprocess
-from respecd.perception.model import FusionNet
+
+if TYPE_CHECKING:
+    from respecd.perception.checkpoint import Net
 
 RGB_CHANNELS = ("r", "g", "b")
 
@@ -53,7 +56,7 @@ def scene_score(per_target: torch.Tensor, confidences: torch.Tensor) -> torch.Te
 
 
 def attribute(
-    model: FusionNet, x: torch.Tensor, presence: torch.Tensor, score_threshold: float, iou_threshold: float,
+    model: Net, x: torch.Tensor, presence: torch.Tensor, score_threshold: float, iou_threshold: float,
     max_det: int, top_k: int,
 ) -> tuple[list, torch.Tensor | None, torch.Tensor | None]:
     """Forward with gradients, NMS, one backward from the top-K confidences.

@@ -17,11 +17,13 @@ from typing import Any
 
 import torch
 from pydantic import ValidationError
-from torch import nn
 
 from respecd.errors import ConfigError
 from respecd.perception.config import ModelSpec, resolve_weights
+from respecd.perception.darknet_fusion import DarknetFusionNet
 from respecd.perception.model import FusionNet, count_parameters
+
+Net = FusionNet | DarknetFusionNet  # what a spec builds: the CSP net or the pretrained-Darknet variant
 
 FORMAT = "respecd-fusion/1"
 
@@ -31,16 +33,14 @@ def resolve(source: str) -> Path:
     return resolve_weights(source)
 
 
-def build(spec: ModelSpec) -> nn.Module:
+def build(spec: ModelSpec) -> Net:
     """The network a spec describes: the CSP net, or the Darknet-backbone variant."""
     if spec.backbone.startswith("darknet:"):
-        from respecd.perception.darknet_fusion import DarknetFusionNet
-
         return DarknetFusionNet(spec)
     return FusionNet(spec)
 
 
-def save(path: Path, model: FusionNet, extra: dict[str, Any] | None = None) -> None:
+def save(path: Path, model: Net, extra: dict[str, Any] | None = None) -> None:
     """Write the checkpoint atomically (tmp file + rename), so a crash never leaves half a file."""
     payload = {"format": FORMAT, "spec": model.spec.model_dump(mode="json"), "state_dict": model.state_dict()}
     payload.update(extra or {})
@@ -50,7 +50,7 @@ def save(path: Path, model: FusionNet, extra: dict[str, Any] | None = None) -> N
     os.replace(tmp, path)
 
 
-def write_card(path: Path, model: FusionNet, card: dict[str, Any]) -> Path:
+def write_card(path: Path, model: Net, card: dict[str, Any]) -> Path:
     """The JSON model card beside the checkpoint: channels, widths, sizes, data, metrics."""
     body = {
         "format": FORMAT,
@@ -95,7 +95,7 @@ def load_problem(err: BaseException) -> str:
     return type(err).__name__ if "weights_only" in first or "safe_globals" in first else first
 
 
-def load(source: str, expected: ModelSpec | None = None, map_location: str = "cpu") -> tuple[FusionNet, dict]:
+def load(source: str, expected: ModelSpec | None = None, map_location: str = "cpu") -> tuple[Net, dict]:
     """Model (eval mode) and the raw payload. ``expected``: the profile's spec, must match."""
     path = resolve(source)
     payload = read(path)

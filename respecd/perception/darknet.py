@@ -372,7 +372,7 @@ def load(cfg_path: Path, weights_path: Path | None = None, in_channels: int | No
     return net.eval()
 
 
-def decode_yolo(raw: torch.Tensor, spec: YoloSpec, input_hw: tuple[int, int]) -> torch.Tensor:
+def decode_yolo(raw: torch.Tensor, spec: YoloSpec, input_hw: tuple[int, ...]) -> torch.Tensor:
     """Raw (B, A(5+nc), h, w) -> (B, h*w*A, 5 + nc): cx, cy, w, h in input pixels, objectness, class probs.
 
     Darknet's yolo layer (scale_x_y, new_coords=0): x = (cell + (sigmoid(tx) - 0.5) s + 0.5) * stride,

@@ -103,7 +103,7 @@ class DarknetFusionNet(nn.Module):
         self._black.clear()  # backbone 1 may change
         return super().train(mode)
 
-    def decode(self, raw: list[torch.Tensor], input_hw: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    def decode(self, raw: list[torch.Tensor], input_hw: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor]:
         """Raw maps -> boxes (B, N, 4) x1y1x2y2 in input pixels and scores objectness x class (B, N, nc)."""
         rows = torch.cat([darknet.decode_yolo(r, s, input_hw) for r, s in zip(raw, self.yolo_specs, strict=True)], 1)
         centre, size = rows[..., :2], rows[..., 2:4]
@@ -129,6 +129,7 @@ def from_darknet(spec: ModelSpec, weights: Path) -> DarknetFusionNet:
     _init_aux(model, pretrained)
     with torch.no_grad():
         for fuse in model.fuse:
+            assert isinstance(fuse, nn.Conv2d)
             eye = torch.eye(fuse.out_channels)[:, :, None, None]
             fuse.weight.copy_(torch.cat([eye, eye], 1))
     return model

@@ -20,8 +20,8 @@ from respecd.perception import checkpoint
 from respecd.perception.align import AlignedInput, Aligner
 from respecd.perception.attribution import SceneScores, attribute, grouped
 from respecd.perception.boxes import postprocess
+from respecd.perception.checkpoint import Net
 from respecd.perception.config import PerceptionConfig
-from respecd.perception.model import FusionNet
 from respecd.sensors import Calibration
 
 log = structlog.get_logger(__name__)
@@ -36,7 +36,7 @@ def conf_agg(confidences: list[float]) -> float:
 class FusionDetector:
     """Aligner + FusionNet + NMS + attribution, with the scene score kept between calls."""
 
-    def __init__(self, model: FusionNet, config: PerceptionConfig,
+    def __init__(self, model: Net, config: PerceptionConfig,
                  calibration: dict[str, Calibration | None] | None = None) -> None:
         self.model = model.eval()
         for p in self.model.parameters():  # attribution needs input gradients only

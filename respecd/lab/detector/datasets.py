@@ -255,8 +255,10 @@ def _yolo_item(image: Path, labels_path: Path, mapping: dict[int, int], modality
         if not line.strip():
             continue
         try:
-            cls, cx, cy, bw, bh = line.split()[:5]
-            c, values = int(cls), [float(v) for v in (cx, cy, bw, bh)]
+            fields = line.split()
+            c, values = int(fields[0]), [float(v) for v in fields[1:5]]
+            if len(values) != 4:
+                raise ValueError(line)
         except ValueError as err:
             raise InputError(f"{labels_path}:{number}: expected 'class cx cy w h', found {line.strip()!r}") from err
         if not all(math.isfinite(v) for v in values) or mapping.get(c, -1) < 0:

@@ -25,7 +25,7 @@ from respecd.perception.config import ModelSpec
 VAL_SCORE_THRESHOLD = 0.01  # the usual mAP protocol: rank everything the net proposes
 
 
-def initial_model(init: str | None, spec: ModelSpec) -> nn.Module:
+def initial_model(init: str | None, spec: ModelSpec) -> checkpoint.Net:
     """The net training starts from: ``spec`` from scratch, or ``init``'s weights (its own spec)."""
     if not init:
         return checkpoint.build(spec)
@@ -49,7 +49,7 @@ def freeze(model: nn.Module, parts: tuple[str, ...]) -> None:
             raise InputError(f"--freeze {name}: the net has no part {name!r} (it has {', '.join(children)})")
         for p in children[name].parameters():
             p.requires_grad_(False)
-    model._frozen_parts = tuple(parts)  # type: ignore[attr-defined]
+    setattr(model, "_frozen_parts", tuple(parts))  # noqa: B010 (read back by keep_frozen_eval)
 
 
 def keep_frozen_eval(model: nn.Module) -> None:
@@ -60,7 +60,7 @@ def keep_frozen_eval(model: nn.Module) -> None:
 
 
 @torch.no_grad()
-def validation_map(model: nn.Module, samples, iou_threshold: float = 0.5, max_det: int = 100) -> float:
+def validation_map(model: checkpoint.Net, samples, iou_threshold: float = 0.5, max_det: int = 100) -> float:
     """mAP@0.5 of ``model`` (eval mode) on a list/source of Samples, all modalities as given."""
     from respecd.lab.detector.evaluate import sample_input
     from respecd.lab.detector.metrics import ImageResult, mean_ap
@@ -81,5 +81,5 @@ def validation_map(model: nn.Module, samples, iou_threshold: float = 0.5, max_de
     return float(mean_ap(images)["map50"])
 
 
-def finite(value: float) -> float | None:
+def finite(value: float | None) -> float | None:
     return None if value is None or not np.isfinite(value) else round(float(value), 4)

@@ -26,6 +26,7 @@ from respecd.lab.detector.loss import detection_loss
 from respecd.lab.detector.yolo_loss import yolo_loss
 from respecd.perception import checkpoint
 from respecd.perception.config import PerceptionConfig
+from respecd.perception.darknet_fusion import DarknetFusionNet
 
 log = structlog.get_logger(__name__)
 
@@ -58,8 +59,8 @@ class TrainConfig:
 class EMA:
     """Exponential moving average of the weights; decay ramps up so early steps count."""
 
-    def __init__(self, model: nn.Module, decay: float = 0.999, tau: float = 300.0) -> None:
-        self.model = copy.deepcopy(model).eval()
+    def __init__(self, model: checkpoint.Net, decay: float = 0.999, tau: float = 300.0) -> None:
+        self.model: checkpoint.Net = copy.deepcopy(model).eval()
         for p in self.model.parameters():
             p.requires_grad_(False)
         self.decay, self.tau, self.updates = decay, tau, 0
@@ -169,12 +170,12 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
     return summary
 
 
-def net_loss(model: nn.Module, raw, input_hw: tuple[int, int], gt_boxes: torch.Tensor, gt_labels: torch.Tensor,
+def net_loss(model: checkpoint.Net, raw, input_hw: tuple[int, int], gt_boxes: torch.Tensor, gt_labels: torch.Tensor,
              gt_mask: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
     """The training objective of the net's head: YOLOv8's for the CSP net, YOLOv3/v5's for a Darknet head."""
-    if hasattr(model, "yolo_specs"):
+    if isinstance(model, DarknetFusionNet):
         return yolo_loss(raw, model.yolo_specs, input_hw, gt_boxes, gt_labels, gt_mask)
-    return detection_loss(*raw, input_hw, gt_boxes, gt_labels, gt_mask, model.spec.reg_max)
+    return detection_loss(raw[0], raw[1], input_hw, gt_boxes, gt_labels, gt_mask, model.spec.reg_max)
 
 
 def _is_best(curve: list[dict]) -> bool:
@@ -192,7 +193,7 @@ def _stale(curve: list[dict], patience: int) -> bool:
     return patience > 0 and best is not None and curve[-1]["epoch"] - best >= patience
 
 
-def _maybe_resume(path: Path, cfg: TrainConfig, model: nn.Module, ema: EMA,
+def _maybe_resume(path: Path, cfg: TrainConfig, model: checkpoint.Net, ema: EMA,
                   opt: torch.optim.Optimizer) -> tuple[int, list[dict]]:
     if not cfg.resume or not path.is_file():
         return 0, []
@@ -207,7 +208,7 @@ def _maybe_resume(path: Path, cfg: TrainConfig, model: nn.Module, ema: EMA,
     return int(payload["epoch"]), list(payload.get("curve", []))
 
 
-def _epoch(model: nn.Module, ema: EMA, opt: torch.optim.Optimizer, pool, cfg: TrainConfig, epoch: int,
+def _epoch(model: checkpoint.Net, ema: EMA, opt: torch.optim.Optimizer, pool, cfg: TrainConfig, epoch: int,
            steps: int, total: int) -> float:
     from respecd.lab.detector.data import progress
 

@@ -89,11 +89,11 @@ def _level_loss(out: torch.Tensor, spec: YoloSpec, input_hw: tuple[int, int], bo
     cx = (centre[:, 0] / (input_hw[1] / w)).long().clamp(0, w - 1)
     cy = (centre[:, 1] / (input_hw[0] / h)).long().clamp(0, h - 1)
     index = (cy * w + cx) * a + ai  # row of (cell, anchor) in decode_yolo's order
-    b = img[gi]
-    loss_box = (1.0 - ciou(pred[b, index], boxes[gi])).mean()
-    obj_target[b, index] = 1.0
-    weight[b, index] = 1.0
+    owner = img[gi]  # the image of each assigned box
+    loss_box = (1.0 - ciou(pred[owner, index], boxes[gi])).mean()
+    obj_target[owner, index] = 1.0
+    weight[owner, index] = 1.0
     loss_obj = F.binary_cross_entropy_with_logits(logits[..., 4], obj_target, weight, reduction="mean")
     cls_target = F.one_hot(labels[gi], nc).to(out.dtype)
-    loss_cls = F.binary_cross_entropy_with_logits(logits[b, index, 5:], cls_target, reduction="mean")
+    loss_cls = F.binary_cross_entropy_with_logits(logits[owner, index, 5:], cls_target, reduction="mean")
     return loss_box, loss_obj, loss_cls, len(gi)
