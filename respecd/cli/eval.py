@@ -131,6 +131,7 @@ def _record_in_card(args: argparse.Namespace, summary: dict, images: int, title:
 def _detector(weights: str, pcfg):
     """The checkpoint's own net; a Darknet ``.weights`` file is imported untrained into the fusion net
     (thermal = the same pretrained detector on replicated IR): the single-modality baselines."""
+    from respecd.perception import checkpoint
     from respecd.perception.config import ModelSpec
     from respecd.perception.detector import FusionDetector
 
@@ -142,13 +143,4 @@ def _detector(weights: str, pcfg):
         spec = ModelSpec(backbone=f"darknet:{Path(weights).stem}", aux_modalities=("thermal",))
         config = pcfg.model_copy(update={"model": spec})
         return FusionDetector(from_darknet(spec, Path(weights)), config)
-    return FusionDetector.load(pcfg.model_copy(update={"model": _spec_of(weights)}))
-
-
-def _spec_of(weights: str):
-    """The checkpoint's own spec: eval takes whatever network the file holds."""
-    from respecd.perception import checkpoint
-    from respecd.perception.config import ModelSpec
-
-    payload = checkpoint.read(checkpoint.resolve(weights))
-    return ModelSpec.model_validate(payload["spec"])
+    return FusionDetector.load(pcfg.model_copy(update={"model": checkpoint.spec_of(weights)}))

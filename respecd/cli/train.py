@@ -18,7 +18,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True,
                         help="'sim' (simulated rover) or a folder: LLVIP/VOC pairs, COCO json or YOLO txt")
     parser.add_argument("--out", required=True, type=Path, help="checkpoint to write (.pt); the card goes beside it")
-    parser.add_argument("--epochs", type=int, default=10, help="epochs of --steps steps each (default 10)")
+    parser.add_argument("--epochs", type=int, default=10,
+                        help="epochs of --steps steps each (default 10; 0 with --init: import, no training)")
     parser.add_argument("--batch", type=int, default=16, help="crops per step (default 16)")
     parser.add_argument("--lr", type=float, default=2e-3, help="AdamW peak learning rate (default 0.002)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulated world and the augmentation")
@@ -134,8 +135,9 @@ def save_curve(summary: dict, metrics: dict | None, path: Path) -> Path:
 
 
 def _check(args: argparse.Namespace) -> None:
-    if args.epochs < 1 or args.batch < 1:
-        raise InputError(f"--epochs and --batch must be at least 1 (got {args.epochs}, {args.batch})")
+    if args.epochs < (0 if args.init else 1) or args.batch < 1:  # --epochs 0 --init X: import only
+        raise InputError(f"--epochs and --batch must be at least 1, or --epochs 0 with --init "
+                         f"(got {args.epochs}, {args.batch})")
     if args.data != "sim" and not Path(args.data).is_dir():
         raise InputError(f"--data {args.data}: expected 'sim' or a dataset folder (LLVIP/VOC, COCO json, YOLO txt)")
     if args.out.suffix != ".pt":

@@ -95,6 +95,15 @@ def load_problem(err: BaseException) -> str:
     return type(err).__name__ if "weights_only" in first or "safe_globals" in first else first
 
 
+def spec_of(source: str) -> ModelSpec:
+    """The model spec a checkpoint holds (tools take whatever net the file has)."""
+    path = resolve(source)
+    try:
+        return ModelSpec.model_validate(read(path)["spec"])
+    except (KeyError, ValidationError) as err:
+        raise ConfigError(f"{path}: checkpoint has no valid model spec ({err.__class__.__name__})") from err
+
+
 def load(source: str, expected: ModelSpec | None = None, map_location: str = "cpu") -> tuple[Net, dict]:
     """Model (eval mode) and the raw payload. ``expected``: the profile's spec, must match."""
     path = resolve(source)

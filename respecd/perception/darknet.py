@@ -171,6 +171,19 @@ class ConvLayer(nn.Module):
         x = self.conv(x)
         return self.act(self.bn(x) if self.bn is not None else x)
 
+    @torch.no_grad()
+    def fold_batchnorm(self) -> None:
+        """Inference only: the batch norm folded into the convolution (one op less per layer, same output)."""
+        if self.bn is None:
+            return
+        scale = self.bn.weight / torch.sqrt(self.bn.running_var + self.bn.eps)
+        c = self.conv
+        folded = nn.Conv2d(c.in_channels, c.out_channels, c.kernel_size, c.stride, c.padding, groups=c.groups)
+        folded.weight.copy_(c.weight * scale[:, None, None, None])
+        folded.bias.copy_(self.bn.bias - self.bn.running_mean * scale)
+        folded.requires_grad_(c.weight.requires_grad)
+        self.conv, self.bn = folded.to(c.weight.device), None
+
 
 class MaxPool(nn.Module):
     """Darknet maxpool: output (w + padding - size) / stride + 1, input offset -padding/2."""

@@ -22,6 +22,7 @@ from respecd.perception.attribution import SceneScores, attribute, grouped
 from respecd.perception.boxes import postprocess
 from respecd.perception.checkpoint import Net
 from respecd.perception.config import PerceptionConfig
+from respecd.perception.darknet_fusion import DarknetFusionNet
 from respecd.sensors import Calibration
 
 log = structlog.get_logger(__name__)
@@ -41,6 +42,8 @@ class FusionDetector:
         self.model = model.eval()
         for p in self.model.parameters():  # attribution needs input gradients only
             p.requires_grad_(False)
+        if isinstance(model, DarknetFusionNet):
+            model.fold_batchnorm()  # the daemon never trains its detector
         self.config = config
         self.device = torch.device(config.device)
         self.channels = model.spec.channels

@@ -60,11 +60,12 @@ def _frames(seed: int, size: tuple[int, int]):
 def run(args: argparse.Namespace) -> dict[str, Any]:
     import torch
 
+    from respecd.perception import checkpoint
     from respecd.perception.config import PerceptionConfig
     from respecd.perception.detector import FusionDetector
     from respecd.perception.model import count_parameters
 
-    config = PerceptionConfig(weights=args.weights)
+    config = PerceptionConfig(weights=args.weights, model=checkpoint.spec_of(args.weights))  # the file's own net
     threads = args.threads or config.torch_threads
     torch.set_num_threads(threads)
     detector = FusionDetector.load(config)
