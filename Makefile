@@ -9,7 +9,7 @@ ARGS ?=
 
 SHARED ?= ../shared
 
-.PHONY: install run test bench weights weights-rgbt policy lint clean
+.PHONY: install run test bench weights weights-rgbt weights-rgbt-hituav policy lint clean
 
 install: $(VENV)/.installed
 
@@ -34,10 +34,15 @@ weights: install
 	$(BIN)/respecd train --data sim --out respecd/perception/weights/sim-rover.pt
 
 # builtin:rgbt (configs/spec-rover.yaml): the person-only Yolo-Fastest 1.1 imported twice (RGB backbone and
-# head kept as trained on real photos), backbone 2 fine-tuned on HIT-UAV's real thermal train split,
-# the epoch chosen on its val split; about an hour of one CPU core. docs/PERCEPTION.md "The real checkpoint".
+# head as trained on real photos, the same backbone on thermal); no training. docs/PERCEPTION.md "Real images".
 weights-rgbt: install
 	$(BIN)/respecd train --data $(SHARED)/data/real/hituav_thermal --out respecd/perception/weights/rgbt.pt \
+	  --init $(SHARED)/data/pretrained/yolo_fastest/yolo-fastest-1.1_body.weights --aux thermal --epochs 0
+
+# builtin:rgbt-hituav: backbone 2 fine-tuned on HIT-UAV's real thermal train split (RGB backbone, head and
+# fusion frozen), the epoch chosen on its val split; about an hour of one CPU core (the shipped file: epochs 1-5).
+weights-rgbt-hituav: install
+	$(BIN)/respecd train --data $(SHARED)/data/real/hituav_thermal --out respecd/perception/weights/rgbt-hituav.pt \
 	  --init $(SHARED)/data/pretrained/yolo_fastest/yolo-fastest-1.1_body.weights --aux thermal \
 	  --freeze rgb,head,fuse --epochs 8 --steps 150 --batch 16 --lr 0.001 --scale 1.0 --val-scale 2.0 \
 	  --val-limit 100 --crop 320x256 --zoom 1.2,4 --patience 3

@@ -77,3 +77,12 @@ def test_checkpoint_round_trip_and_detector(weights: Path, pair, tmp_path: Path)
 def test_unknown_backbone_is_a_clear_error() -> None:
     with pytest.raises(InputError, match=r"no packaged Darknet cfg nope.cfg \(shipped: .*yolo-fastest-1.1_body"):
         checkpoint.build(ModelSpec(backbone="darknet:nope"))
+
+
+def test_spec_rover_profile_loads_the_shipped_real_checkpoint() -> None:
+    from respecd.config import load_profile
+
+    profile = load_profile(Path(__file__).resolve().parents[1] / "configs" / "spec-rover.yaml")
+    assert profile.perception.weights == "builtin:rgbt"
+    detector = FusionDetector.load(profile.perception.model_copy(update={"device": "cpu"}))
+    assert isinstance(detector.model, DarknetFusionNet) and detector.channels == ("r", "g", "b", "thermal")
