@@ -179,8 +179,10 @@ def net_loss(model: checkpoint.Net, raw, input_hw: tuple[int, int], gt_boxes: to
 
 
 def _is_best(curve: list[dict]) -> bool:
-    scores = [r["val_map50"] for r in curve if r["val_map50"] is not None]
-    return bool(scores) and curve[-1]["val_map50"] is not None and curve[-1]["val_map50"] >= max(scores)
+    """The last epoch beats every earlier one (a tie keeps the earlier epoch, as _best_epoch reports)."""
+    earlier = [r["val_map50"] for r in curve[:-1] if r["val_map50"] is not None]
+    last = curve[-1]["val_map50"]
+    return last is not None and all(last > s for s in earlier)
 
 
 def _best_epoch(curve: list[dict]) -> int | None:
