@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import abc
 from collections import deque
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -102,6 +102,7 @@ class Driver(abc.ABC):
     """One sensor stream. Subclasses set ``key`` (the YAML ``driver:`` value)."""
 
     key: ClassVar[str]
+    _announce: Callable[[], None] | None = None  # set by announce_changes
 
     def __init__(self, config: DriverConfigBase, clock: Clock, context: DriverContext | None = None) -> None:
         self.config = config
@@ -110,7 +111,29 @@ class Driver(abc.ABC):
         self.name = config.name
         self.modality: Modality = config.modality
         self.health = DriverHealth()
-        self.applied: SensorConfig = config.initial_request()
+        self.applied = config.initial_request()
+
+    @property
+    def applied(self) -> SensorConfig:
+        """What the device runs now: the answer to the last ``apply``, or what the device itself
+        turned out to run (a camera that negotiated another mode at start, a FLIR One reporting its
+        real frame size, a radar recovering to its last good profile)."""
+        return self._applied
+
+    @applied.setter
+    def applied(self, value: SensorConfig) -> None:
+        changed = value != getattr(self, "_applied", None)
+        self._applied = value
+        if changed and self._announce is not None:
+            self._announce()
+
+    def announce_changes(self, callback: Callable[[], None] | None) -> None:
+        """Have ``callback()`` called, from whichever thread set it, each time ``applied`` changes.
+
+        The session publishes the new value to everyone who follows configurations; without
+        this, a change the device made on its own would stay inside the driver.
+        """
+        self._announce = callback
 
     @property
     @abc.abstractmethod

@@ -20,6 +20,7 @@ import asyncio
 import sys
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -215,7 +216,10 @@ class Session:
         self.applied.subscribe(self.synchronizer.on_config, current=False)
         for listener in self.hooks.config:
             self.applied.subscribe(listener)  # the start configuration, then every change
+        loop = asyncio.get_running_loop()
         for name, driver in self.drivers.items():
+            driver.announce_changes(partial(self._notice, loop, name))
+            self._driver_changed(name)  # anything a driver learned between construction and now
             self._spawn(f"driver:{name}", supervise(f"driver:{name}", driver_runner(driver, self._sink(name))))
         self._spawn("sync", supervise("sync", self.synchronizer.run))
         if self.perception is not None:
@@ -255,6 +259,8 @@ class Session:
         pending = [t for t in tasks if not t.done()]
         if pending:
             await asyncio.wait(pending, timeout=max(deadline - loop.time(), 0.01))
+        for driver in self.drivers.values():
+            driver.announce_changes(None)
         self.lingering = [t.get_name() for t in tasks if not t.done()]
         if self.lingering:
             log.warning("stages_still_stopping", tasks=self.lingering)
@@ -300,6 +306,23 @@ class Session:
             await asyncio.gather(*waiters, return_exceptions=True)
 
     # -- the stages ---------------------------------------------------------------------
+    def _notice(self, loop: asyncio.AbstractEventLoop, name: str) -> None:
+        """Any thread: a driver's ``applied`` changed; publish it from the loop."""
+        try:
+            loop.call_soon_threadsafe(self._driver_changed, name)
+        except RuntimeError:  # the loop has closed: the session is over and nobody follows configs
+            pass
+
+    def _driver_changed(self, name: str) -> None:
+        """On the loop: publish what a driver runs if it changed outside an apply answer.
+
+        The value is read now, not carried by the notice, so a notice that arrives after a
+        newer apply answer has been published finds nothing new and publishes nothing stale.
+        """
+        applied = self.drivers[name].applied
+        if self.applied.get(name) != applied:
+            self.applied.publish(name, applied)
+
     def _spawn(self, name: str, coro: Any) -> None:
         self._tasks[name] = asyncio.create_task(coro, name=name)
 
