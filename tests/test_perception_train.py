@@ -55,10 +55,14 @@ def test_one_epoch_on_llvip_layout_then_resume(llvip_tiny: Path, tmp_path: Path)
     assert payload["data"] == str(llvip_tiny)
     resume = out.with_name(out.name + ".resume")
     assert checkpoint.read(resume)["epoch"] == 1
-    train(TrainConfig(**{**cfg.__dict__, "epochs": 2, "resume": True}), pcfg)  # runs epoch 2 only
-    assert checkpoint.read(resume)["epoch"] == 2
-    assert any(not torch.equal(a, b) for a, b in zip(model.state_dict().values(),
-                                                       checkpoint.load(str(out))[0].state_dict().values(), strict=True))
+    second = train(TrainConfig(**{**cfg.__dict__, "epochs": 2, "resume": True}), pcfg)  # runs epoch 2 only
+    resumed = checkpoint.read(resume)
+    assert resumed["epoch"] == 2 and [r["epoch"] for r in resumed["curve"]] == [1, 2]
+    assert any(not torch.equal(a, b) for a, b in zip(model.state_dict().values(),  # epoch 2 trained
+                                                       resumed["ema"].values(), strict=True))
+    kept = checkpoint.load(str(out))[0].state_dict()  # the best epoch's EMA (a tie keeps epoch 1)
+    unchanged = all(torch.equal(a, b) for a, b in zip(model.state_dict().values(), kept.values(), strict=True))
+    assert unchanged == (second["best_epoch"] == 1)
 
 
 def test_train_command_on_the_simulator(tmp_path: Path, capsys) -> None:
