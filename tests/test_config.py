@@ -67,6 +67,11 @@ def test_paper_reward_ablation_differs_from_sim_rover_only_in_the_reward():
                                "staleness": (0.0, 0.0, 0.0), "bandwidth": 0.0}
 
 
+def test_free_bandwidth_ablation_differs_from_sim_rover_only_in_the_bandwidth_weight():
+    base_reward, ablation_reward = _ablation_difference("sim-rover-free-bandwidth", "reward")
+    assert base_reward["bandwidth"] > 0 and ablation_reward == {**base_reward, "bandwidth": 0.0}
+
+
 def test_no_load_ablation_differs_from_sim_rover_only_in_the_learners_factors():
     base_factors, ablation_factors = _ablation_difference("sim-rover-no-load", "factors")
     assert ablation_factors == tuple(f for f in base_factors if f != "load")
