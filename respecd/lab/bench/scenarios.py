@@ -139,7 +139,7 @@ def _bar(args: argparse.Namespace, total: int) -> Any:
 def summary(result: dict[str, Any]) -> str:
     """What a person reads after a run: the pooled figures per policy, their spread over the
     world sets, and the headline."""
-    from respecd.lab.experiment.report import drop_text, number, reduction_text
+    from respecd.lab.experiment.report import headline, number
 
     spread = result.get("spread", {})
     sets = result.get("worlds", 1)
@@ -155,14 +155,7 @@ def summary(result: dict[str, Any]) -> str:
                      f" compute [{s['compute_ms_per_s'][0]:.0f}, {s['compute_ms_per_s'][1]:.0f}]"
                      f" MB/s [{s['bandwidth_bps'][0] / 1e6:.2f}, {s['bandwidth_bps'][1] / 1e6:.2f}]")
         lines.append(line)
-    for name, v in result.get("summary", {}).items():
-        lines.append(f"{name.replace('_', ' ')}: {reduction_text(v['compute_reduction'])} compute, "
-                     f"{reduction_text(v.get('bandwidth_reduction'))} bandwidth, mAP@0.5 {drop_text(v['map50_drop'])}")
-    diffs = result.get("statistics", {}).get("pooled", {}).get("map50_difference_95", {})
-    for name, interval in diffs.items():
-        if interval:
-            lines.append(f"mAP@0.5 {name.replace('_', ' ')}: 95 % interval [{interval[0]:+.3f}, {interval[1]:+.3f}] "
-                         "(bootstrap over worlds)")
+    lines += headline(result)
     lines.append(f"{len(result.get('scenarios', []))} scenario rows in {result.get('wall_s', 0):.0f} s; "
                  "all figures: --json OUT (and --markdown, --figure)")
     return "\n".join(lines)

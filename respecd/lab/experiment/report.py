@@ -57,16 +57,19 @@ def markdown(result: dict[str, Any]) -> str:
         for name, c in stats.items():
             lines.append(f"| {name} | {c['worlds']} | {number(c['people'], 'd')} | {c['instants']} | {c['targets']} |")
     lines.append("")
-    for name, v in result["summary"].items():
-        lines.append(f"- **{name.replace('_', ' ')}**: {reduction_text(v['compute_reduction'])} compute, "
-                     f"{reduction_text(v.get('bandwidth_reduction'))} bandwidth, mAP@0.5 "
-                     f"{drop_text(v['map50_drop'])} (absolute)")
-    diffs = result.get("statistics", {}).get("pooled", {}).get("map50_difference_95", {})
-    for name, interval in diffs.items():
-        if interval:
-            lines.append(f"- mAP@0.5 {name.replace('_', ' ')}: 95 % interval {interval[0]:+.3f} to {interval[1]:+.3f} "
-                         "(bootstrap over worlds)")
+    lines += [f"- {line}" for line in headline(result)]
     return "\n".join(lines) + "\n"
+
+
+def headline(result: dict[str, Any]) -> list[str]:
+    """The summary in sentences: each comparison, then the intervals of the mAP differences."""
+    lines = [f"{name.replace('_', ' ')}: {reduction_text(v['compute_reduction'])} compute, "
+             f"{reduction_text(v.get('bandwidth_reduction'))} bandwidth, mAP@0.5 {drop_text(v['map50_drop'])}"
+             for name, v in result.get("summary", {}).items()]
+    diffs = result.get("statistics", {}).get("pooled", {}).get("map50_difference_95", {})
+    lines += [f"mAP@0.5 {name.replace('_', ' ')}: 95 % interval [{interval[0]:+.3f}, {interval[1]:+.3f}] "
+              "(bootstrap over worlds)" for name, interval in diffs.items() if interval]
+    return lines
 
 
 def _bars(ax: Any, scenarios: list[str], policies: list[str], values: dict[str, list[float]],
