@@ -163,6 +163,10 @@ def test_bench_scenarios_pools_world_sets_and_reports_their_spread(trained: Path
     assert set(pooled["statistics"]["pooled"]["map50_difference_95"]) == {
         "static_minus_rl", "heuristic_minus_rl", "static_minus_best_other"}
     assert "| scenario | worlds | people |" in (tmp_path / "t.md").read_text()
+    assert len(pooled["goals"]) == 6 and all(set(g) == {"goal", "measured", "met"} for g in pooled["goals"])
+    ceiling = pooled["goals"][0]["measured"]
+    maps = {p: v["map50"] for p, v in pooled["pooled"].items()}
+    assert ceiling == pytest.approx(maps["static"] - max(maps["heuristic"], maps["rl"]), abs=1e-4)
 
 
 def test_worlds_needs_the_simulator(trained: Path, profile_path: Path, tmp_path: Path, capsys) -> None:

@@ -87,6 +87,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             bar.close()
         evaluator.cache.close()
     result.update(extra)
+    if args.log is None:
+        from respecd.lab.experiment.report import goals
+
+        result["goals"] = goals(result)
     result.update(latency_ms=lat.to_json(rollout.latency), latency_source=str(args.latency or "measured"),
                   table=str(table), detector_fingerprint=evaluator.fingerprint,
                   cache={"hits": evaluator.cache.hits, "misses": evaluator.cache.misses},
@@ -156,6 +160,10 @@ def summary(result: dict[str, Any]) -> str:
                      f" MB/s [{s['bandwidth_bps'][0] / 1e6:.2f}, {s['bandwidth_bps'][1] / 1e6:.2f}]")
         lines.append(line)
     lines += headline(result)
+    missed = [g["goal"] for g in result.get("goals", []) if g["met"] is False]
+    if result.get("goals"):
+        lines.append(f"goals met: {len(result['goals']) - len(missed)} of {len(result['goals'])}"
+                     + "".join(f"\n  not met: {g}" for g in missed))
     lines.append(f"{len(result.get('scenarios', []))} scenario rows in {result.get('wall_s', 0):.0f} s; "
                  "all figures: --json OUT (and --markdown, --figure)")
     return "\n".join(lines)

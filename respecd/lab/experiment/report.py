@@ -58,7 +58,38 @@ def markdown(result: dict[str, Any]) -> str:
             lines.append(f"| {name} | {c['worlds']} | {number(c['people'], 'd')} | {c['instants']} | {c['targets']} |")
     lines.append("")
     lines += [f"- {line}" for line in headline(result)]
+    lines += ["", "| goal | measured | met? |", "|---|---:|---|"]
+    for g in goals(result):
+        met = "n/a" if g["met"] is None else ("yes" if g["met"] else "**no**")
+        lines.append(f"| {g['goal']} | {number(g['measured'], '+.3f')} | {met} |")
     return "\n".join(lines) + "\n"
+
+
+# The headline's targets (issue 20): (name, summary entry, key, bound, at least?)
+GOALS = (
+    ("static is the accuracy ceiling: static mAP@0.5 ≥ every other policy's − 0.02", None, None, -0.02, True),
+    ("RL vs static: compute ≥ 40 % less", "rl_vs_static", "compute_reduction", 0.40, True),
+    ("RL vs static: mAP@0.5 ≤ 0.03 lower", "rl_vs_static", "map50_drop", 0.03, False),
+    ("RL vs heuristic: compute ≥ 25 % less", "rl_vs_heuristic", "compute_reduction", 0.25, True),
+    ("RL vs heuristic: mAP@0.5 no lower", "rl_vs_heuristic", "map50_drop", 0.0, False),
+    ("RL vs heuristic: sensing bandwidth ≥ 25 % less", "rl_vs_heuristic", "bandwidth_reduction", 0.25, True),
+)
+
+
+def goals(result: dict[str, Any]) -> list[dict[str, Any]]:
+    """Each target of the headline against the pooled figures: measured value and met or not."""
+    pooled = result.get("pooled", {})
+    out = []
+    for name, entry, key, bound, at_least in GOALS:
+        if entry is None:  # static minus the best other policy
+            maps = [v["map50"] for p, v in pooled.items() if p != "static" and v["map50"] is not None]
+            static = pooled.get("static", {}).get("map50")
+            value = None if static is None or not maps else round(static - max(maps), 4)
+        else:
+            value = result.get("summary", {}).get(entry, {}).get(key)
+        met = None if value is None else (value >= bound if at_least else value <= bound)
+        out.append({"goal": name, "measured": value, "met": met})
+    return out
 
 
 def headline(result: dict[str, Any]) -> list[str]:
