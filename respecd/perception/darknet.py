@@ -20,8 +20,10 @@ outputs, which is how the fusion detector shares one Darknet head between two ba
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any, NoReturn
 
 import numpy as np
 import torch
@@ -98,11 +100,11 @@ class _Opts:
     def __init__(self, section: Section, source: str) -> None:
         self.s, self.source = section, source
 
-    def int(self, key: str, default: int | None = None) -> int:
+    def integer(self, key: str, default: int | None = None) -> int:
         return int(self._number(key, default))
 
-    def float(self, key: str, default: float | None = None) -> float:
-        return float(self._number(key, default))
+    def real(self, key: str, default: float | None = None) -> float:
+        return self._number(key, default)
 
     def ints(self, key: str, default: str | None = None) -> list[int]:
         text = self.s.options.get(key, default)
@@ -112,34 +114,32 @@ class _Opts:
             return [int(v) for v in text.split(",") if v.strip()]
         except ValueError:
             self.fail(f"{key}={text!r}: expected a comma-separated list of integers")
-            raise
 
     def floats(self, key: str) -> list[float]:
         try:
             return [float(v) for v in self.s.options.get(key, "").split(",") if v.strip()]
         except ValueError:
             self.fail(f"{key}: expected a comma-separated list of numbers")
-            raise
 
-    def str(self, key: str, default: str) -> str:
+    def word(self, key: str, default: str) -> str:
         return self.s.options.get(key, default).strip().lower()
 
-    def _number(self, key: str, default):
+    def _number(self, key: str, default: float | None) -> float:
         text = self.s.options.get(key)
         if text is None:
             if default is None:
                 self.fail(f"needs {key}=")
-            return default
+            return float(default)
         try:
             return float(text)
         except ValueError:
             self.fail(f"{key}={text!r}: expected a number")
 
-    def fail(self, what: str):
+    def fail(self, what: str) -> NoReturn:
         raise InputError(f"{self.source}:{self.s.line}: [{self.s.kind}] {what}")
 
 
-ACTIVATIONS = {
+ACTIVATIONS: dict[str, Callable[[], nn.Module]] = {
     "linear": nn.Identity,
     "leaky": lambda: nn.LeakyReLU(0.1),
     "relu": nn.ReLU,
@@ -154,13 +154,13 @@ class ConvLayer(nn.Module):
 
     def __init__(self, c_in: int, o: _Opts) -> None:
         super().__init__()
-        filters, size, stride = o.int("filters"), o.int("size", 1), o.int("stride", 1)
-        groups = o.int("groups", 1)
-        padding = size // 2 if o.int("pad", 0) else o.int("padding", 0)
-        self.batch_normalize = bool(o.int("batch_normalize", 0))
+        filters, size, stride = o.integer("filters"), o.integer("size", 1), o.integer("stride", 1)
+        groups = o.integer("groups", 1)
+        padding = size // 2 if o.integer("pad", 0) else o.integer("padding", 0)
+        self.batch_normalize = bool(o.integer("batch_normalize", 0))
         if c_in % groups or filters % groups:
             o.fail(f"groups={groups} does not divide the {c_in} input channels and {filters} filters")
-        activation = o.str("activation", "logistic")
+        activation = o.word("activation", "logistic")
         if activation not in ACTIVATIONS:
             o.fail(f"activation={activation} not supported ({', '.join(ACTIVATIONS)})")
         self.conv = nn.Conv2d(c_in, filters, size, stride, padding, groups=groups, bias=not self.batch_normalize)
@@ -174,15 +174,21 @@ class ConvLayer(nn.Module):
     @torch.no_grad()
     def fold_batchnorm(self) -> None:
         """Inference only: the batch norm folded into the convolution (one op less per layer, same output)."""
-        if self.bn is None:
+        bn, conv = self.bn, self.conv
+        if bn is None:
             return
-        scale = self.bn.weight / torch.sqrt(self.bn.running_var + self.bn.eps)
-        c = self.conv
-        folded = nn.Conv2d(c.in_channels, c.out_channels, c.kernel_size, c.stride, c.padding, groups=c.groups)
-        folded.weight.copy_(c.weight * scale[:, None, None, None])
-        folded.bias.copy_(self.bn.bias - self.bn.running_mean * scale)
-        folded.requires_grad_(c.weight.requires_grad)
-        self.conv, self.bn = folded.to(c.weight.device), None
+        mean, variance = _running_stats(bn)
+        scale = bn.weight / torch.sqrt(variance + bn.eps)
+        conv.weight.mul_(scale[:, None, None, None])
+        conv.bias = nn.Parameter(bn.bias - mean * scale, requires_grad=conv.weight.requires_grad)
+        self.bn = None
+
+
+def _running_stats(bn: nn.BatchNorm2d) -> tuple[torch.Tensor, torch.Tensor]:
+    """A batch norm's running mean and variance (Darknet's rolling statistics; always tracked here)."""
+    if bn.running_mean is None or bn.running_var is None:
+        raise ValueError("batch norm without running statistics")
+    return bn.running_mean, bn.running_var
 
 
 class MaxPool(nn.Module):
@@ -206,7 +212,7 @@ class Layer:
     channels: int  # output channels
     stride: int  # output stride relative to the network input
     inputs: tuple[int, ...]  # absolute indices of the layers it reads (the previous one by default)
-    extra: dict = field(default_factory=dict)
+    extra: dict[str, Any] = field(default_factory=dict)
 
 
 class DarknetNet(nn.Module):
@@ -218,8 +224,8 @@ class DarknetNet(nn.Module):
         super().__init__()
         net = _Opts(sections[0], source)
         self.source = source
-        self.in_channels = in_channels or net.int("channels", 3)
-        self.input_size = (net.int("width", 416), net.int("height", 416))
+        self.in_channels = in_channels or net.integer("channels", 3)
+        self.input_size = (net.integer("width", 416), net.integer("height", 416))
         self.layers: list[Layer] = []
         self.blocks = nn.ModuleList()
         for index, section in enumerate(sections[1:]):
@@ -252,26 +258,26 @@ class DarknetNet(nn.Module):
             src = self._absolute(o.ints("from")[0], o)
             if self.layers[src].channels != c or self.layers[src].stride != stride:
                 o.fail(f"adds layer {src} ({self.layers[src].channels} channels) to {c} channels")
-            activation = o.str("activation", "linear")
-            if activation not in ACTIVATIONS or o.str("weights_type", "none") != "none":
+            activation = o.word("activation", "linear")
+            if activation not in ACTIVATIONS or o.word("weights_type", "none") != "none":
                 o.fail("only a weightless shortcut with a plain activation is supported")
             return Layer(kind, ACTIVATIONS[activation](), c, stride, (prev, src))
         if kind == "route":
             srcs = tuple(self._absolute(r, o) for r in o.ints("layers"))
-            groups, group_id = o.int("groups", 1), o.int("group_id", 0)
+            groups, group_id = o.integer("groups", 1), o.integer("group_id", 0)
             strides = {self.layers[i].stride for i in srcs}
             if len(strides) != 1:
                 o.fail("concatenates layers of different strides")
             channels = sum(self.layers[i].channels // groups for i in srcs)
             return Layer(kind, None, channels, strides.pop(), srcs, {"groups": groups, "group_id": group_id})
         if kind == "upsample":
-            factor = o.int("stride", 2)
+            factor = o.integer("stride", 2)
             return Layer(kind, nn.Upsample(scale_factor=factor, mode="nearest"), c, stride // factor, (prev,))
         if kind == "maxpool":
-            size = o.int("size", 2)
-            step = o.int("stride", 1)
-            module = MaxPool(size, step, o.int("padding", size - 1))
-            return Layer(kind, module, c, stride * step, (prev,))
+            size = o.integer("size", 2)
+            step = o.integer("stride", 1)
+            pool = MaxPool(size, step, o.integer("padding", size - 1))
+            return Layer(kind, pool, c, stride * step, (prev,))
         if kind == "dropout":
             return Layer(kind, None, c, stride, (prev,))
         return self._yolo(o, prev, c, stride)
@@ -280,12 +286,12 @@ class DarknetNet(nn.Module):
         values = o.floats("anchors")
         pairs = [(values[i], values[i + 1]) for i in range(0, len(values) - 1, 2)]
         mask = o.ints("mask", ",".join(str(i) for i in range(len(pairs))))
-        classes = o.int("classes", 20)
+        classes = o.integer("classes", 20)
         if any(not 0 <= m < len(pairs) for m in mask):
             o.fail(f"mask {mask} refers to anchors beyond the {len(pairs)} given")
         if c != len(mask) * (5 + classes):
             o.fail(f"expects {len(mask)} x (5 + {classes}) = {len(mask) * (5 + classes)} input channels, got {c}")
-        spec = YoloSpec(tuple(pairs[m] for m in mask), classes, o.float("scale_x_y", 1.0))
+        spec = YoloSpec(tuple(pairs[m] for m in mask), classes, o.real("scale_x_y", 1.0))
         return Layer("yolo", None, c, stride, (prev,), {"yolo": spec})
 
     @property
@@ -297,9 +303,16 @@ class DarknetNet(nn.Module):
 
         Outputs go into ``store`` by layer index (earlier outputs must already be there).
         """
+        def fetch(j: int) -> torch.Tensor:
+            if j >= 0:
+                return store[j]
+            if x is None:
+                raise ValueError(f"layer {start} onwards read the network input, but none was given")
+            return x
+
         for i in range(start, stop):
             layer, block = self.layers[i], self.blocks[i]
-            inputs = [x if j < 0 else store[j] for j in layer.inputs]
+            inputs = [fetch(j) for j in layer.inputs]
             if layer.kind == "shortcut":
                 store[i] = block(inputs[0] + inputs[1])
             elif layer.kind == "route":
@@ -357,9 +370,13 @@ def load_weights(net: DarknetNet, path: Path) -> dict[str, int]:
 
 def _load_conv(conv: ConvLayer, values: np.ndarray, cursor: int, path: Path, index: int, offset: int) -> int:
     n = conv.conv.out_channels
-    parts: list[tuple[str, torch.Tensor]] = [("bias", conv.bn.bias if conv.bn is not None else conv.conv.bias)]
     if conv.bn is not None:
-        parts += [("scale", conv.bn.weight), ("mean", conv.bn.running_mean), ("variance", conv.bn.running_var)]
+        mean, variance = _running_stats(conv.bn)
+        parts = [("bias", conv.bn.bias), ("scale", conv.bn.weight), ("mean", mean), ("variance", variance)]
+    elif conv.conv.bias is not None:
+        parts = [("bias", conv.conv.bias)]
+    else:
+        raise ValueError(f"layer {index}: a convolution without batch norm has a bias")
     parts.append(("kernel", conv.conv.weight))
     with torch.no_grad():
         for what, target in parts:
