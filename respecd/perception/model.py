@@ -137,16 +137,27 @@ class Head(nn.Module):
             nn.init.constant_(cls[-1].bias, math.log(5 / nc / (640 / s) ** 2))  # type: ignore[index]
 
     def forward(self, feats: list[torch.Tensor]) -> tuple[torch.Tensor, torch.Tensor]:
-        boxes, logits = [], []
-        for f, box, cls in zip(feats, self.box, self.cls, strict=True):
-            boxes.append(box(f).flatten(2))  # (B, 4*reg_max, h*w)
-            logits.append(cls(f).flatten(2))  # (B, nc, h*w)
+        boxes = [box(f).flatten(2) for f, box in zip(feats, self.box, strict=True)]  # (B, 4*reg_max, h*w)
         # (B, N, 4*reg_max) and (B, N, nc), N = sum of h*w over P3..P5
-        return torch.cat(boxes, 2).transpose(1, 2), torch.cat(logits, 2).transpose(1, 2)
+        return torch.cat(boxes, 2).transpose(1, 2), self.classify(feats)
+
+    def classify(self, feats: list[torch.Tensor]) -> torch.Tensor:
+        """Class logits only (B, N, nc): what attribution needs, without the box branch's cost."""
+        logits = [cls(f).flatten(2) for f, cls in zip(feats, self.cls, strict=True)]  # (B, nc, h*w)
+        return torch.cat(logits, 2).transpose(1, 2)
+
+
+Features = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # P3, P4, P5 of one backbone
 
 
 class FusionNet(nn.Module):
-    """RGB backbone + aux backbone -> concat at P3-P5 -> neck -> head."""
+    """RGB backbone + aux backbone -> concat at P3-P5 -> neck -> head.
+
+    ``forward`` is ``fuse(encode_rgb(rgb), encode_aux(aux, presence))``; the parts are
+    public so that attribution can switch one sensor off without re-running the other
+    backbone (a sensor that is off feeds a zero plane, so its features depend only on the
+    input size).
+    """
 
     def __init__(self, spec: ModelSpec) -> None:
         super().__init__()
@@ -163,15 +174,24 @@ class FusionNet(nn.Module):
 
         Returns DFL box logits (B, N, 4 * reg_max) and class logits (B, N, nc).
         """
-        b, _, h, w = x.shape
+        return self.fuse(self.encode_rgb(x[:, :3]), self.encode_aux(x[:, 3:], presence))
+
+    def encode_rgb(self, rgb: torch.Tensor) -> Features:
+        """(B, 3, H, W) -> the RGB backbone's P3, P4, P5."""
+        return self.rgb(rgb)
+
+    def encode_aux(self, aux: torch.Tensor, presence: torch.Tensor | None = None) -> Features:
+        """(B, A, H, W) aligned non-RGB planes and (B, A) presence flags -> the aux backbone's P3, P4, P5."""
+        b, a, h, w = aux.shape
         if presence is None:
-            presence = x.new_ones(b, x.shape[1] - 3)
-        planes = presence.to(x.dtype)[:, :, None, None].expand(b, presence.shape[1], h, w)  # (B, A, H, W)
-        aux_in = torch.cat([x[:, 3:], planes], 1)  # (B, 2A, H, W)
-        r3, r4, r5 = self.rgb(x[:, :3])
-        a3, a4, a5 = self.aux(aux_in)
-        feats = self.neck(torch.cat([r3, a3], 1), torch.cat([r4, a4], 1), torch.cat([r5, a5], 1))
-        return self.head(feats)
+            presence = aux.new_ones(b, a)
+        planes = presence.to(aux.dtype)[:, :, None, None].expand(b, a, h, w)  # (B, A, H, W)
+        return self.aux(torch.cat([aux, planes], 1))  # input (B, 2A, H, W)
+
+    def fuse(self, rgb: Features, aux: Features, classes_only: bool = False):
+        """Concat per level -> neck -> head: the raw output (box logits, class logits), or class logits only."""
+        feats = self.neck(*(torch.cat([r, a], 1) for r, a in zip(rgb, aux, strict=True)))
+        return self.head.classify(feats) if classes_only else self.head(feats)
 
     def decode(self, raw: tuple[torch.Tensor, torch.Tensor],
                input_hw: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor]:
