@@ -27,7 +27,15 @@ from respecd.errors import DriverError
 from respecd.messages import MODALITIES, Frame, SensorConfig
 from respecd.sim.camera import ground_truth
 from respecd.sim.radar_model import radar_figures
-from respecd.sim.render import render_depth, render_imu, render_radar, render_rgb, render_thermal, rgb_exposure
+from respecd.sim.render import (
+    LEPTON_NATIVE,
+    render_depth,
+    render_imu,
+    render_lepton,
+    render_radar,
+    render_rgb,
+    rgb_exposure,
+)
 from respecd.sim.state import SceneState
 from respecd.sim.world import World, make_world
 
@@ -36,9 +44,14 @@ log = structlog.get_logger(__name__)
 INLINE_BUDGET_S = 0.001  # renders above this go to the worker thread (a hand-off costs the loop ~0.1 ms)
 _COST_SMOOTHING = 0.2  # EWMA weight of the newest render time
 
+# The FLIR One Pro's Lepton: 160x120 at about 8-9 frames per second (SENSORS.md section 3);
+# its 320x240 is an upscale. The simulated camera keeps to the same limits.
+THERMAL_MAX_RATE_HZ = 9.0
+
 CAPABILITIES: dict[str, Capabilities] = {
     "rgb": Capabilities("rgb", resolutions=((1280, 720), (960, 540), (640, 360))),
-    "thermal": Capabilities("thermal", resolutions=((320, 240), (160, 120))),  # both native in the sim
+    "thermal": Capabilities("thermal", resolutions=((320, 240), LEPTON_NATIVE), max_rate_hz=THERMAL_MAX_RATE_HZ,
+                            upscaled=((320, 240),)),
     "depth": Capabilities("depth", resolutions=((848, 480), (640, 480), (424, 240))),
     "radar": Capabilities("radar", modes=("range", "velocity")),
     "imu": Capabilities("imu"),
@@ -212,10 +225,7 @@ class SimDriver(Driver):
             )
         if modality == "thermal":
             assert res is not None, "an imager always has a resolution"
-            return lambda: (
-                render_thermal(state, res, rng),
-                {"gt": ground_truth(state, res), "units": "cK", "kelvin_per_count": 0.01},
-            )
+            return lambda: _thermal_frame(state, res, rng)
         if modality == "depth":
             assert res is not None, "an imager always has a resolution"
             return lambda: (
@@ -233,6 +243,14 @@ class SimDriver(Driver):
             render_imu(state, rng),
             {"gt": ground_truth(state, gt_res), "gt_resolution": gt_res, "ego_speed": state.ego_speed},
         )
+
+
+def _thermal_frame(state: SceneState, size: tuple[int, int], rng: np.random.Generator) -> tuple:
+    """The Lepton's 160x120 centikelvin frame, upscaled bilinearly when a larger size is set (as the FLIR driver)."""
+    meta: dict = {"gt": ground_truth(state, size), "units": "cK", "kelvin_per_count": 0.01}
+    if tuple(size) != LEPTON_NATIVE:
+        meta["upscaled_from"] = LEPTON_NATIVE
+    return render_lepton(state, size, rng), meta
 
 
 def _timed(job: Callable[[], tuple]) -> tuple:

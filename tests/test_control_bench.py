@@ -24,7 +24,7 @@ def test_bench_controller_writes_the_documented_keys(tmp_path: Path, capsys: pyt
     figures = json.loads(out.read_text())
     for key in ("step_us_p50", "step_us_p99", "state_us_p50", "features_us_p50", "probe_us_p50"):
         assert figures[key] > 0
-    assert figures["steps"] == 300 and figures["actions"] == 7500 and figures["table_columns"] == 40
+    assert figures["steps"] == 300 and figures["actions"] == 4500 and figures["table_columns"] == 36
     assert figures["states"] == 3645
     assert "step_us_p50:" in capsys.readouterr().out
 

@@ -21,6 +21,7 @@ from respecd.lab.experiment.compare import rl_controller
 from respecd.lab.experiment.rollout import Piece, Rollout, controller_for
 from respecd.lab.experiment.setup import load_detector, make_evaluator
 from respecd.lab.experiment.training import TrainSettings, episode_pieces, train
+from respecd.sim.config import SCENARIOS
 
 TINY_MODEL = {"rgb_widths": [4, 8, 8, 16, 16], "aux_widths": [4, 8, 8, 16, 16], "neck_widths": [8, 16, 16],
               "reg_max": 4}
@@ -57,7 +58,7 @@ def trained(profile_path: Path, tmp_path_factory: pytest.TempPathFactory) -> Pat
     rollout.latency = lat.measure(detector, lat.sim_frames(world, evaluator.inputs), [(640, 360)], 1)
     settings = TrainSettings(episodes=2, seeds=1, min_s=2.0, max_s=2.0)
     result = train(profile, rollout, settings)
-    assert len(result.episode_reward) == 2 and result.decisions == 2 * 6 * 2
+    assert len(result.episode_reward) == 2 and result.decisions == 2 * len(SCENARIOS) * 2
     out = tmp_path_factory.mktemp("table") / "q.npz"
     save_table(out, result.table, result.layout, {"profile": profile.name})
     return out
@@ -65,7 +66,7 @@ def trained(profile_path: Path, tmp_path_factory: pytest.TempPathFactory) -> Pat
 
 def test_training_updates_and_saves_the_table(trained: Path, profile_path: Path) -> None:
     meta, q, visits = read_table(trained)
-    assert meta["updates"] == 2 * (6 * 2 - 1)  # every step but an episode's first scores the previous action
+    assert meta["updates"] == 2 * (len(SCENARIOS) * 2 - 1)  # every step but an episode's first scores the previous one
     assert visits.sum() == meta["updates"] * len(meta["layout"]["actions"]["blocks"])  # a cell per sensor
     fresh = controller_for(load_profile(profile_path), "learn").table
     assert not np.array_equal(q, fresh.q)  # learning moved some Q-values off their initial value
@@ -101,7 +102,7 @@ def test_episodes_are_randomized() -> None:
     rng = np.random.default_rng(0)
     settings = TrainSettings(seeds=3, min_s=2.0, max_s=5.0)
     a, b = episode_pieces(settings, rng, 1.0), episode_pieces(settings, rng, 1.0)
-    assert sorted(p.scenario for p in a) == sorted(p.scenario for p in b) and len(a) == 6
+    assert sorted(p.scenario for p in a) == sorted(p.scenario for p in b) and len(a) == len(SCENARIOS)
     assert [p.scenario for p in a] != [p.scenario for p in b] or [p.duration_s for p in a] != [p.duration_s for p in b]
     assert all(2.0 <= p.duration_s <= 5.0 and 0 <= p.seed < 3 for p in a + b)
 
@@ -115,7 +116,7 @@ def test_bench_scenarios_json(trained: Path, profile_path: Path, tmp_path: Path,
     assert code == 0
     result = json.loads(out.read_text())
     rows = result["scenarios"]
-    assert len(rows) == 18 and {r["policy"] for r in rows} == {"static", "heuristic", "rl"}
+    assert len(rows) == 3 * len(SCENARIOS) and {r["policy"] for r in rows} == {"static", "heuristic", "rl"}
     for row in rows:
         assert set(row) == {"scenario", "policy", "action", "map50", "compute_ms_per_s", "energy_j", "bandwidth_bps"}
         assert row["compute_ms_per_s"] > 0 and row["energy_j"] > 0 and row["bandwidth_bps"] > 0
@@ -123,7 +124,7 @@ def test_bench_scenarios_json(trained: Path, profile_path: Path, tmp_path: Path,
     for versus in result["summary"].values():
         assert set(versus) == {"compute_reduction", "map50_drop", "bandwidth_reduction"}
     static = [r for r in rows if r["policy"] == "static"]
-    assert all(r["action"].startswith("rgb 640x360@30Hz thermal 320x240@30Hz") for r in static)
+    assert all(r["action"].startswith("rgb 640x360@30Hz thermal 320x240@9Hz") for r in static)
     assert "| scenario | policy |" in md.read_text() and png.stat().st_size > 10_000
     assert len(OutcomeCache.for_fingerprint(result["detector_fingerprint"], tmp_path / "cache" / "respecd" /
                                             "experiment")) > 0  # the outcomes went to the user cache dir

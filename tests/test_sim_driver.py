@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 
+import cv2
 import numpy as np
 import pytest
 
@@ -11,9 +12,10 @@ from respecd.clock import ManualClock, MonotonicClock
 from respecd.config import load_profile
 from respecd.drivers import driver_class
 from respecd.drivers.base import DriverContext
-from respecd.drivers.sim import SimConfig, SimDriver
+from respecd.drivers.sim import SimConfig, SimDriver, _thermal_frame
 from respecd.messages import Frame, SensorConfig
-from respecd.sim.world import SimulationConfig
+from respecd.sim.render import render_thermal
+from respecd.sim.world import SimulationConfig, World
 
 CONTEXT = DriverContext(seed=11, simulation=SimulationConfig(scenario_duration_s=5))
 
@@ -71,7 +73,8 @@ async def test_apply_takes_effect_on_the_next_frame() -> None:
     reader = Reader(driver)
     await reader.run_until(clock, 0.5)
     applied = await driver.apply(SensorConfig("thermal", rate_hz=2.0, resolution=(320, 240)))
-    assert applied.rate_hz == 2.0 and applied.resolution == (320, 240) and applied.notes == ()
+    assert applied.rate_hz == 2.0 and applied.resolution == (320, 240)
+    assert applied.notes == ("320x240 is upscaled from the native resolution",)  # as on the FLIR One
     count = len(reader.frames)
     await reader.run_until(clock, 2.55)
     await reader.close()
@@ -82,6 +85,25 @@ async def test_apply_takes_effect_on_the_next_frame() -> None:
     assert [f.t for f in after] == pytest.approx([0.5, 1.0, 1.5, 2.0, 2.5])  # the 2 Hz grid from the next slot
     assert driver.health.drops == 0
     assert after[0].meta["units"] == "cK" and after[0].meta["gt"] is not None
+    assert after[0].meta["upscaled_from"] == (160, 120) and "upscaled_from" not in before[0].meta
+
+
+async def test_thermal_keeps_to_the_flir_one_limits() -> None:
+    """The Lepton delivers about 9 frames per second at 160x120; the simulated one does no better."""
+    clock = ManualClock()
+    driver = _driver("thermal", clock, rate_hz=9, resolution=(160, 120))
+    applied = await driver.apply(SensorConfig("thermal", rate_hz=30.0, resolution=(160, 120)))
+    assert applied.rate_hz == 9.0 and applied.notes == ("rate 30 Hz capped at 9 Hz",)
+    await driver.start()
+    reader = Reader(driver)
+    await reader.run_until(clock, 2.0)
+    await reader.close()
+    assert len(reader.frames) == 19  # t = 0, 1/9, ..., 18/9
+    native = reader.frames[0].data
+    upscaled, _ = _thermal_frame(World(SimulationConfig(), 0).state_at(1.0), (320, 240), np.random.default_rng(0))
+    plain = render_thermal(World(SimulationConfig(), 0).state_at(1.0), (160, 120), np.random.default_rng(0))
+    assert native.shape == (120, 160)
+    assert np.array_equal(upscaled, cv2.resize(plain, (320, 240), interpolation=cv2.INTER_LINEAR))
 
 
 async def test_raising_the_rate_mid_period_drops_nothing() -> None:

@@ -50,7 +50,7 @@ def _scene(*targets: Target, occluders: tuple[Occluder, ...] = (), light: float 
     return replace(_state(), targets=targets, occluders=occluders, light=light, ego_speed=0.0, ego_accel=0.0)
 
 
-def test_scenarios_in_paper_order() -> None:
+def test_scenarios_in_paper_order_then_the_radar_only_one() -> None:
     assert SCENARIOS == (
         "good-light-static",
         "poor-light-static",
@@ -58,14 +58,17 @@ def test_scenarios_in_paper_order() -> None:
         "poor-light-moving",
         "occlusion-partial",
         "occlusion-smoke",
+        "behind-curtain",
     )
     assert SimulationConfig().scenarios == list(SCENARIOS)
+    assert load_profile("builtin:sim-rover").simulation.scenarios == list(SCENARIOS)
 
 
 def test_sequence_and_loop() -> None:
     world = World(SimulationConfig(scenario_duration_s=10), seed=1)
-    assert [world.state_at(10 * i + 1).scenario for i in range(7)] == [*SCENARIOS, SCENARIOS[0]]
-    first, again = world.state_at(1.0), world.state_at(61.0)
+    n = len(SCENARIOS)
+    assert [world.state_at(10 * i + 1).scenario for i in range(n + 1)] == [*SCENARIOS, SCENARIOS[0]]
+    first, again = world.state_at(1.0), world.state_at(10.0 * n + 1.0)
     assert first.scenario == again.scenario and first.segment != again.segment
     assert first.targets != again.targets  # each pass draws fresh parameters
     held = World(SimulationConfig(scenario_duration_s=10, loop=False), seed=1)
@@ -98,8 +101,9 @@ def test_parameters_stay_in_their_ranges() -> None:
             assert light[0] <= state.light <= light[1]
             if "static" in name or "occlusion" in name:
                 assert all(t.speed_mps == 0 for t in state.targets)
+            far = 8.0 if name == "behind-curtain" else 12.0  # an indoor curtain: people nearer
             for target in state.targets:
-                assert 1.5 <= target.position[2] <= 12.5  # 2-12 m, give or take the rover's motion
+                assert 1.5 <= target.position[2] <= far + 0.5  # 2-12 m, give or take the rover's motion
 
 
 def test_renderers_are_deterministic() -> None:
@@ -183,6 +187,38 @@ def test_smoke_blocks_rgb_mostly_thermal_but_not_radar() -> None:
     assert rgb(smoky) < 0.12 * rgb(clear)
     assert 0.1 * thermal(clear) < thermal(smoky) < 0.4 * thermal(clear)  # 25 % transmission
     assert _radar_hits(smoky, "range") > 0.5 * _radar_hits(clear, "range")
+
+
+def test_curtain_and_dense_fog_blind_both_cameras_but_not_radar() -> None:
+    """Cloth and water fog stop visible light and LWIR; thin fabric costs 60 GHz a few dB."""
+    clear = _scene(_person(z=5.0))
+    curtain = replace(_wall(3.0, "smoke"), kind="curtain", rgb_opacity=1.0, thermal_transmission=0.005,
+                      radar_loss_db=3.0)
+    fog = replace(_wall(3.0, "smoke"), rgb_opacity=0.995, thermal_transmission=0.005, radar_loss_db=0.3)
+    clear_rgb = float(np.abs(_person_signal(_rgb, clear)).sum())
+    clear_thermal = float(np.abs(_person_signal(_thermal, clear)).sum())
+    for occluder in (curtain, fog):
+        scene = replace(clear, occluders=(occluder,))
+        truth = ground_truth(scene, (640, 360))[0]
+        assert truth["visible"] == 1.0  # not hidden: the radar still sees all of the person
+        assert truth["transmission"]["rgb"] < 0.01 and truth["transmission"]["thermal"] < 0.01
+        assert float(np.abs(_person_signal(_rgb, scene)).sum()) < 0.02 * clear_rgb
+        assert float(np.abs(_person_signal(_thermal, scene)).sum()) < 0.05 * clear_thermal
+        assert _radar_hits(scene, "range") > 0.6 * _radar_hits(clear, "range")
+    assert ground_truth(clear, (640, 360))[0]["transmission"] == {"rgb": 1.0, "thermal": 1.0}
+
+
+def test_behind_curtain_scenario_puts_everyone_behind_it() -> None:
+    index = SCENARIOS.index("behind-curtain")
+    kinds = set()
+    for seed in range(8):
+        state = World(SimulationConfig(), seed).state_at(index * 30 + 5.0)
+        assert state.scenario == "behind-curtain" and state.light >= SimulationConfig().good_light[0]
+        (occluder,) = state.occluders
+        kinds.add(occluder.kind)
+        for truth in ground_truth(state, (1280, 720)):
+            assert truth["transmission"]["rgb"] < 0.02 and truth["transmission"]["thermal"] < 0.02
+    assert kinds == {"curtain", "smoke"}  # a fabric curtain or a dense fog bank
 
 
 def _radar_hits(scene: SceneState, mode: str, rate_hz: float = 10) -> int:

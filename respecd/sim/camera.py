@@ -85,6 +85,21 @@ def smoke_opacity(xs: np.ndarray, ys: np.ndarray, zs: np.ndarray, occluders: tup
     return 1.0 - clear
 
 
+def transmission(
+    xs: np.ndarray, ys: np.ndarray, zs: np.ndarray, occluders: tuple[Occluder, ...]
+) -> tuple[np.ndarray, np.ndarray]:
+    """Share of visible light and of LWIR that reaches the cameras from each point through
+    the smoke, fog and curtains in front of it (1 = clear); solids are ``blocked_mask``'s."""
+    rgb = np.ones(np.shape(xs), dtype=np.float64)
+    lwir = np.ones(np.shape(xs), dtype=np.float64)
+    for occ in occluders:
+        if occ.kind != "solid":
+            behind = blocked_mask(xs, ys, zs, (occ,), occ.kind)
+            rgb[behind] *= 1.0 - occ.rgb_opacity
+            lwir[behind] *= occ.thermal_transmission
+    return rgb, lwir
+
+
 def _as_blocker(target: Target) -> Occluder:
     """A person as an opaque rectangle for visibility tests (0.8 of the width: arms and the leg gap)."""
     w, h = target.size
@@ -96,12 +111,14 @@ def ground_truth(state: SceneState, rgb_resolution: tuple[int, int]) -> list[dic
 
     ``visible`` is the share of the body that is in the frame and not behind a solid
     occluder or a nearer person; ``smoke`` the mean RGB opacity of smoke in front of the
-    visible part.
+    visible part; ``transmission`` the mean share of its light reaching the RGB and the
+    thermal camera through smoke, fog and curtains (the radar sees through all three).
     """
     cam = Camera.at(state.intrinsics, rgb_resolution)
     out: list[dict] = []
     bodies = {tg.id: _as_blocker(tg) for tg in state.targets}
     has_smoke = any(occ.kind == "smoke" for occ in state.occluders)
+    has_obscurant = any(occ.kind != "solid" for occ in state.occluders)
     for target in sorted(state.targets, key=lambda tg: tg.id):
         if target.position[2] <= NEAR_M:
             continue
@@ -118,12 +135,18 @@ def ground_truth(state: SceneState, rgb_resolution: tuple[int, int]) -> list[dic
         seen &= ~blocked_mask(xs, ys, zs, state.occluders + others, "solid")
         smoky = has_smoke and bool(seen.any())
         smoke = float(smoke_opacity(xs, ys, zs, state.occluders)[seen].mean()) if smoky else 0.0
+        rgb_t, lwir_t = (1.0, 1.0)
+        if has_obscurant:
+            rgb, lwir = transmission(xs, ys, zs, state.occluders)
+            part = seen if seen.any() else slice(None)  # a hidden person: what would reach us through it all
+            rgb_t, lwir_t = float(rgb[part].mean()), float(lwir[part].mean())
         out.append(
             {
                 "id": target.id,
                 "box": (bx1, by1, bx2, by2),
                 "visible": float(seen.mean()),
                 "smoke": smoke,
+                "transmission": {"rgb": rgb_t, "thermal": lwir_t},
                 "distance_m": target.distance_m,
                 "speed_mps": target.speed_mps,
             }

@@ -132,8 +132,8 @@ def render_radar(state: SceneState, mode: str, rate_hz: float, rng: np.random.Ge
     blocked = blocked_mask(cloud[:, 0], cloud[:, 1], cloud[:, 2] - 1e-3, state.occluders, "solid")
     cloud = cloud[~blocked]  # the solid occluder's own face stays (nudged 1 mm nearer above)
     for occ in state.occluders:
-        if occ.kind == "smoke":  # smoke costs a few dB, nothing more, at 60 GHz
-            behind = blocked_mask(cloud[:, 0], cloud[:, 1], cloud[:, 2], (occ,), "smoke")
+        if occ.kind != "solid":  # smoke, fog and thin fabric cost a few dB, nothing more, at 60 GHz
+            behind = blocked_mask(cloud[:, 0], cloud[:, 1], cloud[:, 2], (occ,), occ.kind)
             cloud[behind, 4] -= occ.radar_loss_db
     points = np.concatenate([_measure(cloud, fig, rng), _false_alarms(fig, rng)])
     if len(points) > fig.max_points:  # the UART carries only so much per frame: strongest first

@@ -8,8 +8,10 @@ Physics kept on purpose (the controller must be able to learn from it):
   out, so the image is dim and read/shot noise swamps the contrast. Motion blur spans
   image velocity x exposure, so a slower frame rate blurs more when light is short.
 * thermal: centikelvin counts (kelvin x 100, like a radiometric Lepton's TLinear output);
-  indifferent to light; solid occluders block it, smoke lets 15-35 % through.
-* depth: z-depth in millimetres, valid 0.3-3 m (0 = invalid), noise growing with z^2.
+  indifferent to light; solid occluders block it, smoke lets 15-35 % through, a curtain or
+  a dense fog bank about 1 %.
+* depth: z-depth in millimetres, valid 0.3-3 m (0 = invalid), noise growing with z^2; a
+  curtain is a surface to it, smoke and fog scatter its projected pattern.
 """
 
 from __future__ import annotations
@@ -24,6 +26,7 @@ from respecd.sim.textures import (
     DEPTH_MAX_MM,
     DEPTH_MIN_MM,
     NOISE_STD,
+    curtain_texture,
     depth_background,
     fabric,
     noise_slice,
@@ -32,7 +35,8 @@ from respecd.sim.textures import (
     thermal_background,
 )
 
-__all__ = ["ground_truth", "render_depth", "render_imu", "render_radar", "render_rgb", "render_thermal"]
+__all__ = ["ground_truth", "render_depth", "render_imu", "render_lepton", "render_radar", "render_rgb",
+           "render_thermal"]
 
 FULL_WELL_E = 2000.0  # electrons at reflectance 1, light 1, 1/30 s: a small-pixel UVC sensor
 READ_NOISE_E = 20.0
@@ -129,6 +133,11 @@ def _paint_occluder_rgb(canvas: np.ndarray, cam: Camera, occ: Occluder) -> None:
         smoke = smoke_texture(cam.height, cam.width, occ.color)[y1:y2, x1:x2]
         cv2.addWeighted(dst, 1.0 - occ.rgb_opacity, smoke, occ.rgb_opacity, 0.0, dst=dst)
         return
+    if occ.kind == "curtain":  # hanging folds across the width, the weave of the cloth
+        cloth = cv2.multiply(curtain_texture(cam.height, cam.width, occ.color)[y1:y2, x1:x2],
+                             fabric(cam.height, cam.width)[y1:y2, x1:x2], scale=1 / 255)
+        cv2.addWeighted(dst, 1.0 - occ.rgb_opacity, cloth, occ.rgb_opacity, 0.0, dst=dst)
+        return
     dst[:] = occ.color
     plank = max(2, int(0.2 * cam.fy / occ.center[2]))  # 20 cm boards
     dst[::plank] = tuple(int(c * 0.6) for c in occ.color)
@@ -156,12 +165,14 @@ def render_rgb(
     return cv2.addWeighted(canvas, signal, noise, beta, -128.0 * beta)
 
 
-def _paint_occluder_scalar(img: np.ndarray, cam: Camera, occ: Occluder, solid_value: float, smoke_fn) -> None:
+def _paint_occluder_scalar(img: np.ndarray, cam: Camera, occ: Occluder, solid_value: float, smoke_fn,
+                           translucent_curtain: bool) -> None:
+    """A solid fills its box with ``solid_value``; smoke (a curtain too, if translucent) goes to ``smoke_fn``."""
     roi = _roi(cam, cam.box(occ.center, occ.size), pad=0)
     if roi is None:
         return
     x1, y1, x2, y2 = roi
-    if occ.kind == "solid":
+    if occ.kind == "solid" or (occ.kind == "curtain" and not translucent_curtain):
         img[y1:y2, x1:x2] = solid_value
     else:
         smoke_fn(img[y1:y2, x1:x2], (x1, y1, x2, y2))
@@ -181,10 +192,19 @@ def render_thermal(state: SceneState, resolution: tuple[int, int], rng: np.rando
                 view *= occ.thermal_transmission
                 view += (1.0 - occ.thermal_transmission) * occ.temperature_k
 
-            _paint_occluder_scalar(temp, cam, item, item.temperature_k, smoke)
+            _paint_occluder_scalar(temp, cam, item, item.temperature_k, smoke, translucent_curtain=True)
     temp = cv2.GaussianBlur(temp, (0, 0), 0.7 * resolution[0] / 160)  # lens + detector MTF
     temp += rng.standard_normal(temp.shape, dtype=np.float32) * NETD_K  # type: ignore[arg-type]
     return np.clip(np.round(temp * 100.0), 0, 65535).astype(np.uint16)
+
+
+LEPTON_NATIVE = (160, 120)  # the FLIR One Pro's thermal core; its 320x240 output is an upscale
+
+
+def render_lepton(state: SceneState, size: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
+    """What the FLIR One delivers at ``size``: the 160x120 frame, bilinearly upscaled if larger (as drivers/flirone)."""
+    native = render_thermal(state, LEPTON_NATIVE, rng)
+    return native if tuple(size) == LEPTON_NATIVE else cv2.resize(native, tuple(size), interpolation=cv2.INTER_LINEAR)
 
 
 def render_depth(state: SceneState, resolution: tuple[int, int], rng: np.random.Generator) -> np.ndarray:
@@ -202,7 +222,7 @@ def render_depth(state: SceneState, resolution: tuple[int, int], rng: np.random.
                 x1, y1, x2, y2 = roi  # smoke scatters the IR pattern: stereo matching fails
                 view[noise[y1:y2, x1:x2, 2] < 128 + NOISE_STD * (2 * occ.rgb_opacity - 1.3)] = 0.0
 
-            _paint_occluder_scalar(depth, cam, item, item.center[2], smoke)
+            _paint_occluder_scalar(depth, cam, item, item.center[2], smoke, translucent_curtain=False)
     # stereo RMS error ~ z^2 * subpixel / (focal * baseline) = 0.0025 z^2 m for a D435-class camera;
     # OpenCV calls on whole planes: this is the costliest per-pixel work of the sim after RGB
     jitter_dn, dropout_dn, _ = cv2.split(noise)

@@ -22,7 +22,8 @@ from respecd.sim.state import Occluder, Room, Vec3
 class ScenarioSpec:
     light: Literal["good", "poor"]
     moving: bool  # people walk (and the rover drives back and forth)
-    occluder: Literal["solid", "smoke"] | None
+    occluder: Literal["solid", "smoke", "curtain"] | None
+    max_distance_m: float | None = None  # nearer than the profile's far limit (an indoor curtain)
 
 
 SPECS: dict[str, ScenarioSpec] = {
@@ -32,6 +33,8 @@ SPECS: dict[str, ScenarioSpec] = {
     "poor-light-moving": ScenarioSpec("poor", True, None),
     "occlusion-partial": ScenarioSpec("good", False, "solid"),
     "occlusion-smoke": ScenarioSpec("good", False, "smoke"),
+    # a curtain or room divider a metre or two in front of the people, in a room: people stand 2-8 m away
+    "behind-curtain": ScenarioSpec("good", False, "curtain", max_distance_m=8.0),
 }
 assert set(SPECS) == set(SCENARIOS), "every scenario needs a spec"
 
@@ -102,16 +105,18 @@ def _floor_point(
 
 def _walkers(spec: ScenarioSpec, config: SimulationConfig, rng: np.random.Generator) -> tuple[Walker, ...]:
     count = int(rng.integers(config.people[0], config.people[1] + 1))
+    near, far = config.distance_m
+    distances = (near, min(far, max(near, spec.max_distance_m or far)))
     walkers: list[Walker] = []
     for i in range(count):
         for _ in range(20):  # keep people apart so one does not hide another entirely
-            a = _floor_point(config, rng, config.distance_m)
+            a = _floor_point(config, rng, distances)
             if all(math.hypot(a[0] - w.a[0], a[1] - w.a[1]) > 1.0 for w in walkers):
                 break
         b, speed = a, 0.0
         if spec.moving:
             while math.hypot(b[0] - a[0], b[1] - a[1]) < 1.5:
-                b = _floor_point(config, rng, config.distance_m)
+                b = _floor_point(config, rng, distances)
             speed = _u(rng, config.walk_speed_mps)
         size = (_u(rng, (0.42, 0.6)), _u(rng, (1.5, 1.9)))
         color = tuple(int(c) for c in rng.integers(25, 230, size=3))
@@ -166,7 +171,7 @@ def _solid_occluder(config: SimulationConfig, rng: np.random.Generator, w: Walke
 def _smoke(
     config: SimulationConfig, rng: np.random.Generator, walkers: tuple[Walker, ...], ambient_k: float
 ) -> Occluder:
-    """A smoke curtain in front of everyone: blocks RGB, most of thermal; radar sees through."""
+    """A smoke screen in front of everyone: blocks RGB, most of thermal; radar sees through."""
     nearest = min(w.a[1] for w in walkers)
     z_o = max(1.0, nearest - _u(rng, (0.5, 1.0)))
     xs = [w.a[0] * z_o / w.a[1] for w in walkers]
@@ -186,6 +191,33 @@ def _smoke(
     )
 
 
+def _curtain(
+    config: SimulationConfig, rng: np.random.Generator, walkers: tuple[Walker, ...], ambient_k: float
+) -> Occluder:
+    """What blinds both cameras but not a 60 GHz radar, in front of everyone: a curtain or a fog bank.
+
+    A fabric curtain is opaque to visible light and to LWIR (cloth absorbs 8-14 um and shows
+    its own, ambient temperature) while thin fabric costs a 60 GHz wave about 0.5-2 dB each
+    way. A dense water fog scatters visible light and LWIR alike (its droplets are about the
+    LWIR wavelength, unlike the sub-micron soot of smoke) and costs 60 GHz well under 1 dB
+    over a few metres.
+    """
+    nearest = min(w.a[1] for w in walkers)
+    z_o = max(1.0, nearest - _u(rng, (0.5, 1.5)))
+    xs = [w.a[0] * z_o / w.a[1] for w in walkers]
+    x1, x2 = min(xs) - _u(rng, (0.8, 2.0)), max(xs) + _u(rng, (0.8, 2.0))
+    height = config.camera_height_m + 2.3  # floor to above anyone's head
+    center = ((x1 + x2) / 2, config.camera_height_m - height / 2, z_o)
+    if rng.random() < 0.5:
+        color = tuple(int(c) for c in rng.integers(40, 220, size=3))
+        loss_db = 2 * _u(rng, (0.5, 2.0))  # two-way
+        return Occluder("curtain", center, (x2 - x1, height), 1.0, _u(rng, (0.0, 0.01)), loss_db,
+                        ambient_k + _u(rng, (-0.3, 0.5)), color)  # type: ignore[arg-type]
+    shade = int(rng.integers(190, 235))
+    return Occluder("smoke", center, (x2 - x1, height), _u(rng, (0.985, 1.0)), _u(rng, (0.0, 0.01)),
+                    _u(rng, (0.0, 0.5)), ambient_k + _u(rng, (-0.5, 0.5)), (shade, shade, shade))
+
+
 def draw_segment(name: str, config: SimulationConfig, rng: np.random.Generator) -> Segment:
     """Draw every random parameter of one run of scenario ``name``."""
     spec = SPECS[name]
@@ -197,6 +229,8 @@ def draw_segment(name: str, config: SimulationConfig, rng: np.random.Generator) 
         occluders = (_solid_occluder(config, rng, walkers[0], ambient_k),)
     elif spec.occluder == "smoke":
         occluders = (_smoke(config, rng, walkers, ambient_k),)
+    elif spec.occluder == "curtain":
+        occluders = (_curtain(config, rng, walkers, ambient_k),)
     omega = 2 * math.pi / _u(rng, (8.0, 15.0))
     amplitude = _u(rng, config.ego_speed_mps) / omega if spec.moving else 0.0
     amplitude = min(amplitude, 0.5 * (config.distance_m[0] - 0.5))  # never drive into the nearest person

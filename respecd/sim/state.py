@@ -37,14 +37,20 @@ class Target:
 
 @dataclass(frozen=True, slots=True)
 class Occluder:
-    """An upright rectangle facing the camera: a crate or wall edge (solid) or a smoke curtain."""
+    """An upright rectangle facing the camera: a crate or wall edge (solid), smoke, or a fabric curtain.
 
-    kind: Literal["solid", "smoke"]
+    What each kind passes follows the physics of each band (see docs/SIMULATOR.md): a solid
+    blocks all three sensors; smoke scatters visible light, and LWIR less the finer it is;
+    a curtain is opaque to visible light and to LWIR (the fabric absorbs 8-14 um and shows
+    its own temperature) but thin fabric costs a 60 GHz radar only a few dB.
+    """
+
+    kind: Literal["solid", "smoke", "curtain"]
     center: Vec3
     size: tuple[float, float]  # width, height (m)
-    rgb_opacity: float  # 1 = opaque; smoke 0.85..0.97
+    rgb_opacity: float  # 1 = opaque; smoke 0.85..0.97, dense smoke ~0.99
     thermal_transmission: float  # share of the radiance behind that gets through (0 solid)
-    radar_loss_db: float  # two-way loss for radar returns behind it (inf = blocks)
+    radar_loss_db: float  # two-way loss (dB) for radar returns behind it (inf = blocks)
     temperature_k: float
     color: tuple[int, int, int]  # BGR under full light
 

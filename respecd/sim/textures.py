@@ -126,3 +126,12 @@ def smoke_texture(height: int, width: int, color: tuple[int, int, int]) -> np.nd
     """uint8 (H, W, 3) billowing grey for the smoke occluder."""
     billow = 0.85 + 0.15 * _low_freq(11, height, width, cells=16)
     return np.clip(np.array(color, np.float32) * billow[..., None], 0, 255).astype(np.uint8)
+
+
+@functools.lru_cache(maxsize=8)
+def curtain_texture(height: int, width: int, color: tuple[int, int, int]) -> np.ndarray:
+    """uint8 (H, W, 3) a hanging cloth: vertical folds (light and shade across the width)."""
+    u = np.arange(width, dtype=np.float32)
+    folds = 0.8 + 0.2 * np.sin(u * (2 * np.pi / max(8.0, width / 24)))  # about 24 folds across the frame
+    shade = folds[None, :] * (0.95 + 0.05 * _low_freq(13, height, width, cells=8))
+    return np.clip(np.array(color, np.float32) * shade[..., None], 0, 255).astype(np.uint8)

@@ -29,9 +29,9 @@ from respecd.sim.render import (
     ground_truth,
     render_depth,
     render_imu,
+    render_lepton,
     render_radar,
     render_rgb,
-    render_thermal,
     rgb_exposure,
 )
 from respecd.sim.world import World
@@ -96,7 +96,7 @@ def render(world: World, fid: FrameId) -> Frame:
         meta = rgb_exposure(state, res, exposure)
         return Frame("rgb", t, seq, render_rgb(state, res, exposure, rng), meta)
     if fid.modality == "thermal" and res is not None:
-        return Frame("thermal", t, seq, render_thermal(state, res, rng), {"units": "cK"})
+        return Frame("thermal", t, seq, render_lepton(state, res, rng), {"units": "cK"})
     if fid.modality == "depth" and res is not None:
         return Frame("depth", t, seq, render_depth(state, res, rng), {"units": "mm"})
     if fid.modality == "radar":

@@ -1,8 +1,9 @@
 """Policy training: Q-learning episodes over randomized scenario sequences, on cached outcomes.
 
-An episode is the six scenarios in a random order, each for a random duration (whole
-decision periods between ``min_s`` and ``max_s``) on a world seed drawn from the training
-pool ``0 .. seeds-1`` (the benchmark uses seeds from ``EVAL_SEED`` on, never trained on).
+An episode is the simulator's scenarios (the paper's six, then behind-curtain) in a random
+order, each for a random duration (whole decision periods between ``min_s`` and ``max_s``)
+on a world seed drawn from the training pool ``0 .. seeds-1`` (the benchmark uses seeds
+from ``EVAL_SEED`` on, never trained on).
 One Q-table is shared by all episodes; each episode starts a fresh controller around it
 (window, previous state and action reset, as a daemon restart would) and ε keeps decaying
 across episodes. The profile's reward, learning rate, discount and ε schedule are used as
