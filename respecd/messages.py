@@ -76,7 +76,7 @@ class Detection:
     box: tuple[float, float, float, float]  # x1, y1, x2, y2
     confidence: float
     label: str = "person"
-    contributions: dict[str, float] | None = None  # per input channel, sums to 1
+    contributions: dict[str, float] | None = None  # per modality (rgb, thermal, ...), sums to 1
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,5 +1,6 @@
-"""Attribution: per-target normalization, zero channels carry nothing, decay toward uniform,
-and it runs on the real LLVIP pairs."""
+"""Attribution: the ablation drops are what a sensor-off forward pass gives, per-target
+normalization, zero channels carry nothing, decay toward uniform, and it runs on the real
+LLVIP pairs."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 import torch
 
-from respecd.perception.attribution import SceneScores, attribute, box_channel_sums, grouped, scene_score
+from respecd.perception.attribution import Attributor, SceneScores, box_channel_sums, grouped, scene_score
 from respecd.perception.config import ModelSpec, PerceptionConfig
 from respecd.perception.detector import FusionDetector
 from respecd.perception.model import FusionNet
@@ -43,34 +44,67 @@ def test_scene_score_is_confidence_weighted_and_grouped() -> None:
     assert scene_score(torch.zeros(2, 5), torch.tensor([0.5, 0.5])) is None
 
 
-def _random_detector_input(seed: int) -> tuple[FusionNet, torch.Tensor, torch.Tensor]:
+def _random_detector_input(seed: int, responsive: bool = True) -> tuple[FusionNet, torch.Tensor, torch.Tensor]:
+    """An untrained net with real BatchNorm statistics; ``responsive``: its class logits vary
+    with the input (exact average statistics, random class weights), else only the prior shows."""
     torch.manual_seed(seed)
     model = FusionNet(TINY)
     model.train()
+    for module in model.modules():
+        if responsive and isinstance(module, torch.nn.BatchNorm2d):
+            module.momentum = None  # running statistics = the plain average of the batches below
     with torch.no_grad():  # give BatchNorm real statistics so the untrained net is not flat
         for _ in range(3):
             model(torch.rand(2, 5, 192, 320))
+        for branch in model.head.cls if responsive else ():
+            branch[-1].weight.normal_(0.0, 0.1)
     model.eval()
     for p in model.parameters():
         p.requires_grad_(False)
     return model, torch.rand(1, 5, 192, 320), torch.ones(1, 2)
 
 
-def test_attribution_rows_sum_to_one_and_zero_channel_gets_nothing() -> None:
+@pytest.mark.parametrize("method", ["ablation", "gradient"])
+def test_attribution_rows_sum_to_one_and_zero_channel_gets_nothing(method: str) -> None:
     model, x, presence = _random_detector_input(0)
     x[:, 4] = 0.0  # radar channel switched off
     presence[:, 1] = 0.0
-    dets, per_target, scene = attribute(model, x, presence, 0.0, 0.5, 20, 5)
-    assert len(dets[1]) > 0 and per_target is not None and scene is not None
-    assert per_target.shape == (min(5, len(dets[1])), 5)
-    assert per_target.sum(1).tolist() == pytest.approx([1.0] * len(per_target))
-    assert per_target[:, 4].abs().max().item() == 0.0
-    assert scene[4].item() == 0.0 and scene.sum().item() == pytest.approx(1.0)
+    result = Attributor(model, method)(x, presence, 0.0, 0.5, 20, 5)
+    shares, scene = result.shares, result.scene
+    assert len(result.detections[1]) > 0 and shares is not None and scene is not None
+    assert result.modalities == ("rgb", "thermal", "radar")
+    assert shares.shape == (min(5, len(result.detections[1])), 3)
+    rows = shares.sum(1)
+    assert all(r == pytest.approx(1.0) or r == 0.0 for r in rows.tolist()) and rows.max() > 0
+    assert shares[:, 2].abs().max().item() == 0.0 and scene["radar"] == 0.0
+    assert sum(scene[m] for m in result.modalities) == pytest.approx(1.0)
+    assert ("r" in scene) == (method == "gradient")  # the paper's method also splits R, G, B
+
+
+def test_ablation_drop_is_what_a_sensor_off_forward_pass_gives() -> None:
+    """The cached and partial passes change nothing: each drop equals a full forward with that sensor off."""
+    model, x, presence = _random_detector_input(4)
+    result = Attributor(model, "ablation")(x, presence, 0.0, 0.5, 20, 5)
+    _, scores, labels, anchors = result.detections
+    k = len(result.ranking)
+    for column, (channels, flag) in enumerate((((0, 1, 2), None), ((3,), 0), ((4,), 1))):
+        x_off, presence_off = x.clone(), presence.clone()
+        x_off[:, list(channels)] = 0.0
+        if flag is not None:
+            presence_off[:, flag] = 0.0
+        with torch.no_grad():
+            off = model(x_off, presence_off)[1][0, anchors[:k], labels[:k]].sigmoid()
+        assert result.ranking[:, column].tolist() == pytest.approx((scores[:k] - off).tolist(), abs=1e-5)
+    assert result.ranking.abs().max() > 0.01  # the random net does respond to each sensor
+    expected = result.ranking.clamp(min=0)
+    expected = torch.nan_to_num(expected / expected.sum(1, keepdim=True))
+    assert torch.allclose(result.shares, expected, atol=1e-6)
 
 
 def test_no_detection_decays_toward_uniform() -> None:
-    scores = SceneScores(CHANNELS, decay_s=2.0)
+    scores = SceneScores(CHANNELS, decay_s=2.0, per_channel=True)
     assert scores.value["rgb"] == pytest.approx(1 / 3) and scores.value["r"] == pytest.approx(1 / 9)
+    assert "r" not in SceneScores(CHANNELS, decay_s=2.0).value  # ablation scores whole modalities
     fresh = grouped(CHANNELS, torch.tensor([0.0, 0.0, 0.0, 1.0, 0.0]))
     assert scores.update(10.0, fresh)["thermal"] == 1.0
     after = scores.update(12.0, None)  # one time constant later
@@ -85,8 +119,9 @@ def test_attribution_runs_on_real_llvip_pairs(shared_data) -> None:
     from respecd.lab.detector.data import llvip_frames
 
     root = shared_data / "llvip_pairs"
-    model, _, _ = _random_detector_input(3)
-    detector = FusionDetector(model, PerceptionConfig(model=TINY, score_threshold=0.0, max_detections=5))
+    model, _, _ = _random_detector_input(3, responsive=False)  # real images would saturate the other one
+    detector = FusionDetector(model, PerceptionConfig(model=TINY, score_threshold=0.0, max_detections=5,
+                                                      attribution_method="gradient"))
     for pair in ("190003",):  # five people, full 1280x1024
         frames = llvip_frames(root, pair)
         assert frames["rgb"].data.shape == (1024, 1280, 3)

@@ -74,7 +74,16 @@ def test_presence_planes_change_the_output() -> None:
 def test_detector_runs_with_missing_modalities() -> None:
     torch.manual_seed(1)
     config = PerceptionConfig(score_threshold=0.0, model=TINY, max_detections=10)
-    detector = FusionDetector(FusionNet(TINY), config)
+    model = FusionNet(TINY).train()
+    for module in model.modules():
+        if isinstance(module, torch.nn.BatchNorm2d):
+            module.momentum = None  # running statistics = the average of the batches below
+    with torch.no_grad():
+        for _ in range(2):
+            model(torch.rand(2, 5, 192, 320))
+        for branch in model.head.cls:  # class logits that respond to the input, not only the prior
+            branch[-1].weight.normal_(0.0, 0.5)
+    detector = FusionDetector(model, config)
     rgb = np.random.default_rng(0).integers(0, 255, (360, 640, 3), dtype=np.uint8)
     percept = detector.infer(frames_from_arrays(rgb), attribute=False)
     assert percept.contributions is None and percept.latency > 0

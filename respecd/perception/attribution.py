@@ -1,33 +1,50 @@
-"""Contribution attribution: how much each input channel carried the top detections.
+"""Contribution attribution: how much each modality carried the top detections.
 
-For the top-K detections (after NMS) we take the pre-NMS confidence of the anchor that
-produced each box and back-propagate to the C-channel input. Gradient x input, in
-absolute value, summed over each box region per channel and normalized to sum 1, is the
-target's contribution vector; the scene score is the confidence-weighted mean over
-targets. R, G and B are reported separately and grouped as "rgb".
+For the top-K detections (after NMS) each method gives a per-target vector over the
+modalities (``rgb`` and the aux modalities), normalized to sum 1; the scene score is the
+confidence-weighted mean over targets. Two methods (profile ``perception.attribution_method``):
 
-One backward pass serves all K targets (the gradient of the sum of their confidences):
-K separate passes would cost K times as much. Inside box k the gradient of the other
-targets' confidences is small (they are spatially apart), so the per-box sums are a close
-approximation of per-target attributions; overlapping boxes share some credit.
-The network's weights are frozen while attributing, so backward computes input gradients
-only (about one forward pass of extra cost, not two).
+* ``ablation`` (the default): the confidence each target's anchor loses when one modality
+  is switched off exactly as the daemon feeds a disabled sensor (zero plane, presence 0).
+  The drops, clipped at 0 and normalized, are the contributions, so the ranking is what a
+  controller acts on: the top-ranked sensor is the one whose loss costs the box the most.
+  Cost: the RGB backbone on a zero frame depends only on the input size (cached), the aux
+  backbone runs once more per aux modality that is on, the neck and the class branch once
+  per modality; about 2x a forward pass at 640x360 (docs/PERCEPTION.md has the figures).
+* ``gradient`` (the paper's): the pre-NMS confidences of the K anchors back-propagated to the
+  input; |gradient x input| summed over each box per channel. One backward pass serves all
+  K targets (the gradient of the sum of their confidences), so overlapping boxes share some
+  credit. It also reports R, G and B apart. A zero channel gets exactly 0.
+
+Neither changes the weights: attribution runs on a frozen model.
 """
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
+from typing import Any, Literal
 
-import numpy as np
 import torch
 
 from respecd.perception.boxes import postprocess
-
-if TYPE_CHECKING:
-    from respecd.perception.checkpoint import Net
+from respecd.perception.model import Features, FusionNet
 
 RGB_CHANNELS = ("r", "g", "b")
+Method = Literal["ablation", "gradient"]
+METHODS: tuple[Method, ...] = ("ablation", "gradient")
+Detections = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]  # boxes, scores, labels, anchors
+
+
+@dataclass(frozen=True)
+class Attribution:
+    """One attributed frame. Rows follow the detections' order (highest confidence first)."""
+
+    detections: Detections
+    modalities: tuple[str, ...]  # column names of ``shares`` and ``ranking``
+    shares: torch.Tensor | None  # (K, M) per-target contributions, rows sum to 1 (all 0: no evidence)
+    ranking: torch.Tensor | None  # (K, M) what the method ranks modalities by (ablation: confidence drop)
+    scene: dict[str, float] | None  # scene score per modality (gradient: also r, g, b)
 
 
 def box_channel_sums(saliency: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
@@ -35,19 +52,26 @@ def box_channel_sums(saliency: torch.Tensor, boxes: torch.Tensor) -> torch.Tenso
 
     A box with no attribution at all (every channel zero there) gets a zero row.
     """
+    return _normalized(_box_sums(saliency, boxes))
+
+
+def _box_sums(saliency: torch.Tensor, boxes: torch.Tensor) -> torch.Tensor:
     _, h, w = saliency.shape
     rows = []
     for x1, y1, x2, y2 in boxes.tolist():
         c1, r1 = max(0, int(math.floor(x1))), max(0, int(math.floor(y1)))
         c2, r2 = min(w, max(c1 + 1, int(math.ceil(x2)))), min(h, max(r1 + 1, int(math.ceil(y2))))
         rows.append(saliency[:, r1:r2, c1:c2].sum((1, 2)))  # (C,)
-    sums = torch.stack(rows)  # (K, C)
-    total = sums.sum(1, keepdim=True)
-    return torch.where(total > 0, sums / total.clamp(min=1e-12), torch.zeros_like(sums))
+    return torch.stack(rows)  # (K, C)
+
+
+def _normalized(rows: torch.Tensor) -> torch.Tensor:
+    total = rows.sum(1, keepdim=True)
+    return torch.where(total > 0, rows / total.clamp(min=1e-12), torch.zeros_like(rows))
 
 
 def scene_score(per_target: torch.Tensor, confidences: torch.Tensor) -> torch.Tensor | None:
-    """Confidence-weighted mean of the targets' (K, C) rows; None when no row carries weight."""
+    """Confidence-weighted mean of the targets' (K, M) rows; None when no row carries weight."""
     valid = per_target.sum(1) > 0
     weights = confidences * valid
     if float(weights.sum()) <= 0:
@@ -55,46 +79,118 @@ def scene_score(per_target: torch.Tensor, confidences: torch.Tensor) -> torch.Te
     return (per_target * weights[:, None]).sum(0) / weights.sum()
 
 
-def attribute(
-    model: Net, x: torch.Tensor, presence: torch.Tensor, score_threshold: float, iou_threshold: float,
-    max_det: int, top_k: int,
-) -> tuple[list, torch.Tensor | None, torch.Tensor | None]:
-    """Forward with gradients, NMS, one backward from the top-K confidences.
+class Attributor:
+    """Detections plus contributions for one (1, C, H, W) input, by ``method``.
 
-    ``x`` is (1, C, H, W). Returns the detections (as ``postprocess`` gives them for the one
-    image), the (K, C) per-target contributions (None if nothing detected) and the scene
-    vector (C,) (None if nothing detected).
+    Holds the RGB-off features per input size (a zero frame's backbone output is a constant),
+    so build one per model and keep it. A net without FusionNet's backbone/fusion split
+    (another architecture) gets the same numbers from full forward passes.
     """
-    x = x.detach().requires_grad_(True)
-    with torch.enable_grad():
-        boxes_all, scores_all = model.decode(model(x, presence), tuple(x.shape[2:]))
-        dets = postprocess(boxes_all.detach(), scores_all.detach(), tuple(x.shape[2:]), score_threshold,
-                           iou_threshold, max_det)[0]
-        boxes, scores, labels, anchors = dets
-        if len(scores) == 0:
-            return list(dets), None, None
-        k = min(top_k, len(scores))  # postprocess sorts by score, so these are the top K
-        target = scores_all[0, anchors[:k], labels[:k]].sum()
-        (grad,) = torch.autograd.grad(target, x)
-    saliency = (grad[0] * x[0]).abs().detach()  # (C, H, W)
-    per_target = box_channel_sums(saliency, boxes[:k])
-    return list(dets), per_target, scene_score(per_target, scores[:k])
+
+    def __init__(self, model: Any, method: Method = "ablation") -> None:
+        if method not in METHODS:
+            raise ValueError(f"attribution method {method!r}: expected one of {', '.join(METHODS)}")
+        self.model: Any = model  # FusionNet, or any net with spec, forward(x, presence) and decode(raw, hw)
+        self.method = method
+        self.modalities = ("rgb", *model.spec.aux_modalities)
+        self._split = isinstance(model, FusionNet)
+        self._rgb_off: dict[tuple, Features] = {}
+
+    def __call__(self, x: torch.Tensor, presence: torch.Tensor, score_threshold: float, iou_threshold: float,
+                 max_det: int, top_k: int) -> Attribution:
+        run = self._ablation if self.method == "ablation" else self._gradient
+        return run(x, presence, (score_threshold, iou_threshold, max_det), top_k)
+
+    def _detect(self, raw, hw: tuple[int, ...], nms: tuple) -> tuple[torch.Tensor, Detections]:
+        """Class probabilities (B, N, nc) and the NMS'd detections of the first image."""
+        boxes, scores = self.model.decode(raw, hw)
+        return scores, postprocess(boxes.detach(), scores.detach(), hw, *nms)[0]
+
+    def _ablation(self, x: torch.Tensor, presence: torch.Tensor, nms: tuple, top_k: int) -> Attribution:
+        hw = tuple(x.shape[2:])
+        with torch.inference_mode():
+            parts = (self.model.encode_rgb(x[:, :3]), self.model.encode_aux(x[:, 3:], presence)) if self._split \
+                else None
+            raw = self.model.fuse(*parts) if parts is not None else self.model(x, presence)
+            probabilities, dets = self._detect(raw, hw, nms)
+            if len(dets[1]) == 0:
+                return Attribution(dets, self.modalities, None, None, None)
+            k = min(top_k, len(dets[1]))  # postprocess sorts by score: these are the top K
+            anchors, labels = dets[3][:k], dets[2][:k]
+            base = probabilities[0, anchors, labels]
+            drops = torch.zeros(k, len(self.modalities))
+            for m in range(len(self.modalities)):
+                on = bool(x[:, :3].any()) if m == 0 else float(presence[0, m - 1]) > 0
+                if on:  # a sensor that is already off loses nothing by being switched off
+                    drops[:, m] = base - self._probabilities_off(x, presence, parts, m)[anchors, labels]
+        shares = _normalized(drops.clamp(min=0.0))
+        scene = scene_score(shares, dets[1][:k])
+        named = None if scene is None else dict(zip(self.modalities, scene.tolist(), strict=True))
+        return Attribution(dets, self.modalities, shares, drops, named)
+
+    def _probabilities_off(self, x: torch.Tensor, presence: torch.Tensor, parts, m: int) -> torch.Tensor:
+        """(N, nc) class probabilities with modality ``m`` off: zero plane, presence 0."""
+        if parts is None:
+            x_off, presence_off = _switched_off(x, presence, m)
+            return self.model.decode(self.model(x_off, presence_off), tuple(x.shape[2:]))[1][0]
+        rgb, aux = parts
+        if m == 0:
+            rgb = self._rgb_off_features(x)
+        else:
+            _, presence_off = _switched_off(x, presence, m)
+            aux_off = x[:, 3:].clone()
+            aux_off[:, m - 1] = 0.0
+            aux = self.model.encode_aux(aux_off, presence_off)
+        return self.model.fuse(rgb, aux, classes_only=True).sigmoid()[0]
+
+    def _rgb_off_features(self, x: torch.Tensor) -> Features:
+        key = (tuple(x.shape[2:]), x.dtype, x.device)
+        if key not in self._rgb_off:
+            self._rgb_off[key] = self.model.encode_rgb(x.new_zeros(1, 3, *x.shape[2:]))
+        return self._rgb_off[key]
+
+    def _gradient(self, x: torch.Tensor, presence: torch.Tensor, nms: tuple, top_k: int) -> Attribution:
+        x = x.detach().requires_grad_(True)
+        with torch.enable_grad():
+            probabilities, dets = self._detect(self.model(x, presence), tuple(x.shape[2:]), nms)
+            boxes, scores, labels, anchors = dets
+            if len(scores) == 0:
+                return Attribution(dets, self.modalities, None, None, None)
+            k = min(top_k, len(scores))
+            target = probabilities[0, anchors[:k], labels[:k]].sum()
+            (grad,) = torch.autograd.grad(target, x)
+        saliency = (grad[0] * x[0]).abs().detach()  # (C, H, W)
+        channels = box_channel_sums(saliency, boxes[:k])  # (K, C), rows sum to 1
+        shares = torch.cat([channels[:, :3].sum(1, keepdim=True), channels[:, 3:]], 1)  # (K, M)
+        scene = scene_score(channels, scores[:k])
+        named = None if scene is None else grouped(self.model.spec.channels, scene)
+        return Attribution(dets, self.modalities, shares, shares, named)
 
 
-def grouped(channels: tuple[str, ...], vector: np.ndarray | torch.Tensor) -> dict[str, float]:
+def _switched_off(x: torch.Tensor, presence: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The input with modality ``m`` (0 = RGB, then the aux modalities) as the daemon feeds a disabled sensor."""
+    x_off, presence_off = x.clone(), presence.clone()
+    if m == 0:
+        x_off[:, :3] = 0.0
+    else:
+        x_off[:, 2 + m] = 0.0
+        presence_off[:, m - 1] = 0.0
+    return x_off, presence_off
+
+
+def grouped(channels: tuple[str, ...], vector: torch.Tensor) -> dict[str, float]:
     """Channel vector -> {"r", "g", "b", "rgb", <aux modality>...}: R, G, B apart and summed."""
     values = {name: float(v) for name, v in zip(channels, vector.tolist(), strict=True)}
     values["rgb"] = sum(values[c] for c in RGB_CHANNELS)
     return values
 
 
-def uniform_scores(channels: tuple[str, ...]) -> dict[str, float]:
-    """Equal share per modality (RGB counts as one modality, split evenly over R, G, B)."""
+def uniform_scores(channels: tuple[str, ...], per_channel: bool = False) -> dict[str, float]:
+    """Equal share per modality (RGB counts as one); with ``per_channel`` R, G, B a third of RGB's each."""
     aux = [c for c in channels if c not in RGB_CHANNELS]
     share = 1.0 / (1 + len(aux))
-    scores = {c: share / 3 for c in RGB_CHANNELS}
-    scores.update({c: share for c in aux})
-    scores["rgb"] = share
+    scores = {c: share / 3 for c in RGB_CHANNELS} if per_channel else {}
+    scores.update({"rgb": share, **{c: share for c in aux}})
     return scores
 
 
@@ -106,15 +202,15 @@ class SceneScores:
     s <- u + (s - u) * exp(-dt / decay_s). Before the first attribution it is uniform.
     """
 
-    def __init__(self, channels: tuple[str, ...], decay_s: float) -> None:
-        self.uniform = uniform_scores(channels)
+    def __init__(self, channels: tuple[str, ...], decay_s: float, per_channel: bool = False) -> None:
+        self.uniform = uniform_scores(channels, per_channel)
         self.decay_s = decay_s
         self.value = dict(self.uniform)
         self._t: float | None = None
 
     def update(self, t: float, fresh: dict[str, float] | None) -> dict[str, float]:
         if fresh is not None:
-            self.value = dict(fresh)
+            self.value = {k: fresh.get(k, v) for k, v in self.uniform.items()}
         elif self._t is not None:
             keep = math.exp(-max(0.0, t - self._t) / self.decay_s)
             self.value = {k: self.uniform[k] + (v - self.uniform[k]) * keep for k, v in self.value.items()}

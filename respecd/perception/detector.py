@@ -18,7 +18,7 @@ import torch
 from respecd.messages import Detection, Frame, Percept
 from respecd.perception import checkpoint
 from respecd.perception.align import AlignedInput, Aligner
-from respecd.perception.attribution import SceneScores, attribute, grouped
+from respecd.perception.attribution import Attribution, Attributor, SceneScores
 from respecd.perception.boxes import postprocess
 from respecd.perception.checkpoint import Net
 from respecd.perception.config import PerceptionConfig
@@ -48,7 +48,8 @@ class FusionDetector:
         self.device = torch.device(config.device)
         self.channels = model.spec.channels
         self.aligner = Aligner(config, calibration)
-        self.scores = SceneScores(self.channels, config.attribution_decay_s)
+        self.attributor = Attributor(self.model, config.attribution_method)
+        self.scores = self.scene_scores()
 
     @classmethod
     def load(cls, config: PerceptionConfig, calibration: dict[str, Calibration | None] | None = None) -> FusionDetector:
@@ -58,10 +59,15 @@ class FusionDetector:
                  trained_on=payload.get("data"))
         return cls(model, config, calibration)
 
+    def scene_scores(self) -> SceneScores:
+        """A fresh held scene score for this detector's channels and attribution method."""
+        per_channel = self.config.attribution_method == "gradient"
+        return SceneScores(self.channels, self.config.attribution_decay_s, per_channel)
+
     def reset_scene_scores(self) -> None:
         """Forget the decaying scene score: the next attribution stands on its own (an
         offline evaluator scores each call alone and applies the decay itself)."""
-        self.scores = SceneScores(self.channels, self.config.attribution_decay_s)
+        self.scores = self.scene_scores()
 
     def prepare(self, frames: dict[str, Frame]) -> AlignedInput:
         return self.aligner.align(frames)
@@ -91,14 +97,14 @@ class FusionDetector:
                 dets = postprocess(boxes, scores, tuple(x.shape[2:]), cfg.score_threshold, cfg.iou_threshold,
                                    cfg.max_detections)[0]
             return self._detections(dets, None, aligned.size), None
-        dets, per_target, scene = attribute(self.model, x, presence, cfg.score_threshold, cfg.iou_threshold,  # type: ignore[assignment]
-                                            cfg.max_detections, cfg.attribution_targets)
-        fresh = grouped(self.channels, scene.cpu()) if scene is not None else None
-        contributions = self.scores.update(t, fresh)
-        return self._detections(dets, per_target, aligned.size), contributions
+        result = self.attributor(x, presence, cfg.score_threshold, cfg.iou_threshold, cfg.max_detections,
+                                 cfg.attribution_targets)
+        contributions = self.scores.update(t, result.scene)
+        return self._detections(result.detections, result, aligned.size), contributions
 
-    def _detections(self, dets, per_target: torch.Tensor | None, size: tuple[int, int]) -> tuple[Detection, ...]:
+    def _detections(self, dets, attribution: Attribution | None, size: tuple[int, int]) -> tuple[Detection, ...]:
         boxes, scores, labels, _ = dets
+        shares = attribution.shares if attribution is not None else None
         w, h = size
         boxes = boxes.detach().cpu().numpy()
         boxes = np.clip(boxes, 0, [w, h, w, h])  # letterbox padding is bottom/right: only clipping needed
@@ -106,8 +112,8 @@ class FusionDetector:
         out = []
         for i in range(len(scores)):
             contrib = None
-            if per_target is not None and i < len(per_target):
-                contrib = {c: float(v) for c, v in zip(self.channels, per_target[i].tolist(), strict=True)}
+            if attribution is not None and shares is not None and i < len(shares):
+                contrib = dict(zip(attribution.modalities, shares[i].tolist(), strict=True))
             x1, y1, x2, y2 = (float(v) for v in boxes[i])
             out.append(Detection(box=(x1, y1, x2, y2), confidence=float(scores[i]),
                                  label=names[int(labels[i])], contributions=contrib))

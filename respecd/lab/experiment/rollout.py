@@ -254,7 +254,7 @@ class _Feeder:
         self.on_window = on_window
         self.records: list[WindowRecord] = []
         det = rollout.evaluator.detector
-        self.scores = SceneScores(det.channels, det.config.attribution_decay_s)
+        self.scores = det.scene_scores()
         self._attribute = True  # the first window's first instant, as perception's first bundle
         self._window: tuple[str, Position, dict[str, SensorConfig], list[ImageResult], float] | None = None
         loop.on_window.append(self._attribute_next)
