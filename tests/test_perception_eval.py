@@ -56,8 +56,9 @@ def test_eval_command_on_real_llvip_pairs(shared_data, tmp_path: Path, capsys) -
     assert code == 0
     report = json.loads((out / "eval.json").read_text())
     assert report["frames"]["llvip_pairs"] == 6  # the six annotated pairs
-    assert set(report["map"]["llvip_pairs"]) == {"all", "no-rgb", "no-thermal", "no-radar", "rgb-only"}
-    assert report["map50"] == report["map"]["all"]["all"]["map50"]  # the real-folder top-level keys
+    assert set(report["map"]["llvip_pairs"]) == {"none", "no_rgb", "no_thermal", "no_radar", "rgb_only"}
+    assert set(report["ablation"]["llvip_pairs"]) == set(report["map"]["llvip_pairs"])
+    assert report["map50"] == report["map"]["all"]["none"]["map50"]  # the real-folder top-level keys
     assert isinstance(report["detections"], int) and isinstance(report["detections_without_rgb"], int)
     assert set(report["contributions"]) >= {"rgb", "thermal"}  # flat: the mean scene scores
     assert report["contributions_by_condition"]["all"] == report["contributions"]
@@ -65,6 +66,41 @@ def test_eval_command_on_real_llvip_pairs(shared_data, tmp_path: Path, capsys) -
     text = (out / "eval.md").read_text()
     assert "| llvip_pairs | 6 |" in text and "mAP@0.5" in text
     assert "wrote" in capsys.readouterr().out
+
+
+def test_eval_command_on_the_simulator_writes_every_key(tmp_path: Path) -> None:
+    """The keys the acceptance check reads, for every condition and resolution (a tiny net, 1 run each)."""
+    torch.manual_seed(0)
+    weights = tmp_path / "tiny.pt"
+    checkpoint.save(weights, FusionNet(TINY))
+    out = tmp_path / "eval"
+    assert cli_main(["eval", "--data", "sim", "--weights", str(weights), "--out", str(out), "--frames", "2",
+                     "--threads", "1", "--quiet"]) == 0
+    report = json.loads((out / "eval.json").read_text())
+    conditions = {"good-light", "dark", "occlusion", "smoke", "radar-only", "motion"}
+    assert set(report["by_resolution"]) == {"640x360", "960x540", "1280x720"}
+    for row in report["by_resolution"].values():
+        assert 0 <= row["map50"] <= 1 and set(row["by_condition"]) == conditions
+        assert set(row["levels"]) == {"P3", "P4", "P5"}
+    assert set(report["ablation"]) == {"all", *conditions}
+    assert set(report["ablation"]["radar-only"]) == {"none", "no_rgb", "no_thermal", "no_radar", "rgb_only"}
+    assert report["frames"]["radar-only"] == 2 and report["frames"]["all"] == 14  # 7 scenarios x 2 instants
+    assert report["attribution"] == {"method": "ablation", "rgb": "640x360", "score_threshold": 0.25, "targets": 5}
+    for cond, row in report["contributions"].items():  # whatever the untrained net detects
+        assert set(row) == {"rgb", "thermal", "radar"} and sum(row.values()) == pytest.approx(1.0)
+        assert 0 <= report["faithfulness"][cond] <= 1
+
+
+def test_faithfulness_compares_the_top_two_ranked_sensors() -> None:
+    from respecd.lab.detector.evaluate import _faithful, _matched_confidence
+
+    ranking = np.array([[0.5, 0.3, 0.2], [0.1, 0.6, 0.3]])
+    drops = np.array([[0.4, 0.1, 0.0], [0.5, 0.2, 0.1]])  # box 1: its top (thermal) costs less than rgb
+    assert _faithful(ranking, drops) == [True, True]  # box 1 compares thermal (0.2) with radar (0.1)
+    assert _faithful(ranking, np.array([[0.1, 0.4, 0.0], [0.5, 0.2, 0.3]])) == [False, False]
+    targets = np.array([[0, 0, 10, 10], [50, 50, 60, 60]], np.float32)
+    found = np.array([[1, 1, 10, 10], [0, 0, 5, 5], [20, 20, 30, 30]], np.float32)
+    assert _matched_confidence(targets, found, np.array([0.7, 0.9, 0.8])).tolist() == pytest.approx([0.7, 0.0])
 
 
 def test_eval_command_rejects_a_bad_checkpoint(tmp_path: Path, capsys) -> None:

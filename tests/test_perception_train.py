@@ -68,7 +68,7 @@ def test_one_epoch_on_llvip_layout_then_resume(llvip_tiny: Path, tmp_path: Path)
 def test_train_command_on_the_simulator(tmp_path: Path, capsys) -> None:
     out = tmp_path / "sim.pt"
     code = cli_main(["train", "--data", "sim", "--out", str(out), "--epochs", "1", "--steps", "1", "--batch", "2",
-                     "--segments", "2", "--eval-frames", "0", "--threads", "1", "--quiet"])
+                     "--eval-frames", "0", "--threads", "1", "--quiet"])
     assert code == 0
     card = out.with_suffix(".json")
     assert out.is_file() and card.is_file()
@@ -91,14 +91,94 @@ def _sample(w: int = 320, h: int = 180) -> Sample:
 
 def test_augment_keeps_boxes_inside_and_drops_modalities() -> None:
     rng = np.random.default_rng(0)
-    cfg = AugmentConfig(size=(128, 96), drop_aux_all=1.0)  # always drop every non-RGB modality
+    cfg = AugmentConfig(size=(128, 96))
     pool = [_sample() for _ in range(4)]
-    for _ in range(20):
+    kept = set()
+    for _ in range(120):
         s = augment(pool, rng, cfg)
         assert s.planes.shape == (5, 96, 128)
         assert (s.boxes[:, [0, 2]] >= 0).all() and (s.boxes[:, [0, 2]] <= 128).all()
         assert (s.boxes[:, [1, 3]] >= 0).all() and (s.boxes[:, [1, 3]] <= 96).all()
-        assert s.presence.tolist() == [0.0, 0.0] and not s.planes[3:].any()
+        on = (bool(s.planes[:3].any()), *(bool(v) for v in s.presence))
+        assert any(on) and all(bool(s.planes[3 + i].any()) == bool(s.presence[i]) for i in range(2))
+        kept.add(on)
+    assert len(kept) == 7  # all on, RGB / thermal / radar alone and each pair
     x, presence, boxes, labels, mask = collate([augment(pool, rng, AugmentConfig(size=(128, 96))) for _ in range(3)])
     assert x.shape == (3, 5, 96, 128) and presence.shape == (3, 2)
     assert boxes.shape[:2] == labels.shape == mask.shape and float(x.max()) <= 1.0
+
+
+def test_a_box_the_window_cuts_is_ignored_not_trained_on_half() -> None:
+    from respecd.lab.detector.augment import strip
+
+    planes = np.zeros((5, 360, 640), np.float32)
+    boxes = np.array([[100, 0, 160, 300]], np.float32)  # 60 px wide, cut by the frame's top already
+    sample = Sample(planes, np.ones(2, np.float32), boxes, np.array([False]))
+    rng = np.random.default_rng(1)
+    cfg = AugmentConfig(zoom=(1.0, 1.0), target_bias=0.0)  # windows anywhere: some cut the person
+    seen = set()
+    for _ in range(60):
+        s = strip(sample, 160, 384, rng, cfg)
+        assert s.planes.shape == (5, 384, 160) and s.planes.dtype == np.float32
+        for box, ignored in zip(s.boxes, s.ignore, strict=True):
+            width = float(box[2] - box[0])
+            assert bool(ignored) == (width < 0.9 * 60)  # a whole person is a target, a cut one is not
+            assert box[1] == 0 and box[3] == 300  # full frame height: nothing more is cut at top or bottom
+            seen.add(bool(ignored))
+    assert seen == {True, False}
+
+
+def test_labels_follow_the_evidence_when_a_sensor_is_dropped() -> None:
+    """Behind a curtain only the radar sees: with it off the person is no target. In the dark
+    a person seen by RGB alone is ignored (a hint, not evidence), by day a target."""
+    from respecd.lab.detector.augment import drop_modalities
+
+    def sample(rgb_signal: float) -> Sample:
+        boxes = np.array([[10, 10, 50, 90], [100, 10, 140, 90]], np.float32)
+        seen = np.array([[0.0, 0.005], [1.0, 1.0]], np.float32)  # behind a curtain; in the open
+        return Sample(np.ones((5, 100, 160), np.float32), np.ones(2, np.float32), boxes, np.zeros(2, bool),
+                      meta={"rgb_signal": rgb_signal}, seen=seen)
+
+    def after(keep: tuple[str, ...], rgb_signal: float = 1.0) -> Sample:
+        s = sample(rgb_signal)
+        drop_modalities(s, np.random.default_rng(0), AugmentConfig(keep=((keep, 1.0),)))
+        return s
+
+    assert after(("rgb", "thermal", "radar")).ignore.tolist() == [False, False]
+    only_cameras = after(("rgb", "thermal"))
+    assert only_cameras.presence.tolist() == [1.0, 0.0] and only_cameras.boxes.tolist() == [[100, 10, 140, 90]]
+    assert after(("radar",)).ignore.tolist() == [False, False] and not after(("radar",)).planes[:4].any()
+    assert after(("rgb",), rgb_signal=0.01).ignore.tolist() == [True]  # dark: the open person is a hint
+    assert after(("rgb",), rgb_signal=0.5).ignore.tolist() == [False]
+    assert after(("thermal",), rgb_signal=0.01).ignore.tolist() == [False]
+
+
+def test_tall_people_are_assigned_to_the_heads_that_can_draw_them() -> None:
+    """The DFL head reaches reg_max - 1 strides: 240 px at P3, 480 at P4; taller goes to P5."""
+    from respecd.lab.detector.loss import LossGains, assign
+    from respecd.perception.model import anchor_grid
+
+    points, strides = anchor_grid(736, 320)
+    for height, levels in ((60, {8, 16, 32}), (300, {16, 32}), (560, {32})):
+        gt = torch.tensor([[[100.0, 10.0, 100.0 + 0.35 * height, 10.0 + height]]])
+        n = len(points)
+        for bias in (8, 16, 32):  # whichever level the scores favour, only reachable ones may win
+            scores = torch.where(strides[None] == bias, 0.9, 0.1).expand(1, n, 1)
+            _, _, fg = assign(scores, gt.expand(1, n, 4).clone(), points, strides, gt,
+                              torch.zeros(1, 1, dtype=torch.long), torch.ones(1, 1, dtype=torch.bool), LossGains(), 16)
+            assert fg.any() and {int(s) for s in strides[fg[0], 0].tolist()} <= levels
+
+
+def test_training_frames_are_aligned_as_the_daemon_aligns_them() -> None:
+    """The same Aligner and calibration as the perception stage of builtin:sim-rover, not a resize."""
+    from respecd.config import load_profile
+    from respecd.lab.detector.simdata import SimFrames
+    from respecd.perception.align import Aligner
+    from respecd.perception.stage import calibration_from_profile
+
+    frames = SimFrames(PerceptionConfig(), seed=3)
+    daemon = Aligner(PerceptionConfig(), calibration_from_profile(load_profile("builtin:sim-rover")))
+    assert frames.aligner.calibration == daemon.calibration and frames.aligner.calibration["thermal"] is not None
+    sample = frames.sample(frames.time_in(2, 0.5), (1280, 720), np.random.default_rng(0), randomize=False)
+    assert sample.planes.shape == (5, 720, 1280) and sample.planes.dtype == np.float32
+    assert sample.presence.tolist() == [1.0, 1.0] and len(sample.boxes) == len(sample.seen)

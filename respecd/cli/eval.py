@@ -1,9 +1,12 @@
-"""``respecd eval``: mAP@0.5 and mAP@0.5:0.95 with and without each modality, and the mean
-contribution scores per condition (day / night / occlusion / motion), as a Markdown table,
-a PNG bar chart and JSON.
+"""``respecd eval``: mAP@0.5 at every RGB resolution the controller can choose, mAP with each
+sensor off, the contribution scores per condition and the faithfulness of their ranking
+(deletion test), as Markdown tables, a PNG bar chart and JSON (``eval.json``; its keys are
+listed in docs/PERCEPTION.md).
 
-``--data sim`` renders held-out frames of the simulated scenarios (world seeds training
-never uses); a folder (LLVIP/VOC pairs, COCO json, YOLO txt; see ``lab/detector/datasets``)
+``--data sim`` renders held-out instants of the simulated scenarios (a world seed training
+never uses) at 640x360, 960x540 and 1280x720; the ablation, contributions and deletion test
+run at ``--rgb``. Contributions are those of the daemon's operating point (its score
+threshold and attribution targets). A folder (LLVIP/VOC pairs, COCO json, YOLO txt; see ``lab/detector/datasets``)
 is evaluated image by image at ``--scale`` (its val split if it has one). Detections are
 scored down to confidence 0.01 (the usual mAP protocol), not the daemon's operating
 threshold; the detection counts use the operating threshold. For a folder, eval.json also
@@ -29,15 +32,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="checkpoint path, builtin:NAME, or a Darknet .weights file (imported untrained)")
     parser.add_argument("--out", type=Path, default=Path("out/eval"),
                         help="folder for eval.md, contributions.png, eval.json")
-    parser.add_argument("--frames", type=int, default=40, help="sim: frames per scenario (default 40)")
-    parser.add_argument("--rgb", default="640x360", help="sim: RGB resolution WxH (default 640x360)")
+    parser.add_argument("--frames", type=int, default=40, help="sim: instants per scenario (default 40)")
+    parser.add_argument("--rgb", default="640x360",
+                        help="sim: RGB size WxH of the ablation, contributions and deletion test (default 640x360)")
+    parser.add_argument("--method", choices=("ablation", "gradient"), default=None,
+                        help="contribution method (default: the profile's, ablation)")
     parser.add_argument("--scale", type=float, default=0.5,
                         help="folder data: image scale (default 0.5: LLVIP's 1280x1024 -> 640x512)")
     parser.add_argument("--split", choices=("auto", "all", "train", "val"), default="auto",
                         help="folder data: which images (auto: the val split if the folder has one, else all)")
     parser.add_argument("--modality", choices=("auto", "rgb", "thermal"), default="auto",
                         help="folder data of one modality: which (auto: single-channel images are thermal)")
-    parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2)")
+    # 1 thread: on a 2-core box shared with other work, two spin-waiting threads ran up to 10x slower
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--no-progress", "--quiet", dest="quiet", action="store_true",
                         help="no progress bars (--quiet is the old name)")
     parser.add_argument("--card", action="store_true",
@@ -58,21 +65,21 @@ def main(args: argparse.Namespace) -> int:
     import torch
 
     from respecd.lab.detector import report as report_mod
-    from respecd.lab.detector.evaluate import evaluate, sim_eval_set
+    from respecd.lab.detector.evaluate import evaluate_samples, evaluate_sim
     from respecd.perception.config import PerceptionConfig
 
     torch.set_num_threads(args.threads)
     pcfg = PerceptionConfig(weights=args.weights, score_threshold=EVAL_SCORE_THRESHOLD)
+    if args.method:
+        pcfg = pcfg.model_copy(update={"attribution_method": args.method})
     detector = _detector(args.weights, pcfg)
+    summary = None
     if args.data == "sim":
-        size = _resolution(args.rgb)
-        samples = sim_eval_set(detector.config, args.frames, size, progress=not args.quiet)
-        title = f"Simulated rover, held-out scenes, RGB {size[0]}x{size[1]} ({args.weights})"
-        summary = None
+        result = evaluate_sim(detector, args.frames, _resolution(args.rgb), progress=not args.quiet)
+        title = f"Simulated rover, held-out scenes ({args.weights})"
     else:
         samples, title = _folder_samples(args, detector.config)
-    result = evaluate(detector, samples, progress=not args.quiet)
-    if args.data != "sim":
+        result = evaluate_samples(detector, samples, progress=not args.quiet)
         summary = folder_summary(result)
         if args.card:
             _record_in_card(args, summary, len(samples), title)
@@ -104,10 +111,10 @@ def folder_summary(result: dict) -> dict:
     """Top-level eval.json keys for a real folder: mAP@0.5, mean scene contributions, detection counts."""
     contributions = result["contributions"].get("all", {})
     return {
-        "map50": result["map"]["all"]["all"]["map50"],
+        "map50": result["map"]["all"]["none"]["map50"],
         "contributions": contributions,
-        "detections": result["detections"]["all"]["all"],
-        "detections_without_rgb": result["detections"]["all"]["no-rgb"],
+        "detections": result["detections"]["all"]["none"],
+        "detections_without_rgb": result["detections"]["all"]["no_rgb"],
     }
 
 

@@ -20,17 +20,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path, help="checkpoint to write (.pt); the card goes beside it")
     parser.add_argument("--epochs", type=int, default=10,
                         help="epochs of --steps steps each (default 10; 0 with --init: import, no training)")
-    parser.add_argument("--batch", type=int, default=16, help="crops per step (default 16)")
+    parser.add_argument("--batch", type=int, default=None,
+                        help="sim: strips per step at 640x360, fewer at larger sizes (default 10); "
+                             "folder data: crops per step (default 16)")
     parser.add_argument("--lr", type=float, default=2e-3, help="AdamW peak learning rate (default 0.002)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulated world and the augmentation")
-    parser.add_argument("--segments", type=int, default=300,
-                        help="sim: scenario runs rendered (random draws; 5 frames each; default 300)")
     parser.add_argument("--steps", type=int, default=100,
                         help="steps per epoch (0: one pass over the pool; default 100)")
     # 1 thread: on a 2-core box shared with other work, two spin-waiting threads ran 3x slower per step
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--eval-frames", type=int, default=10,
-                        help="sim: held-out frames per scenario evaluated for the model card (0: skip; default 10)")
+                        help="sim: held-out instants per scenario evaluated for the model card (0: skip; default 10)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT.resume if present")
     parser.add_argument("--init", help="start from this checkpoint (path or builtin:NAME) or Darknet .weights file")
     parser.add_argument("--aux", default="thermal,radar",
@@ -64,9 +64,11 @@ def main(args: argparse.Namespace) -> int:
                             pseudo_rgb=args.pseudo_rgb)
     if augment.size[0] % 32 or augment.size[1] % 32:
         raise InputError(f"--crop {args.crop}: both sides must be multiples of 32")
+    sim = args.data == "sim"
     cfg = TrainConfig(
-        data=args.data, out=args.out, epochs=args.epochs, batch=args.batch, lr=args.lr, seed=args.seed,
-        sim_segments=args.segments, steps_per_epoch=args.steps, threads=args.threads, resume=args.resume,
+        data=args.data, out=args.out, epochs=args.epochs, batch=16 if sim else (args.batch or 16),
+        sim_batch=(args.batch or 10) if sim else 10, lr=args.lr, seed=args.seed,
+        steps_per_epoch=args.steps, threads=args.threads, resume=args.resume,
         progress=not args.quiet, augment=augment, init=args.init,
         freeze=tuple(p for p in args.freeze.split(",") if p), patience=args.patience, modality=args.modality,
         data_scale=args.scale, val_scale=args.val_scale, val_limit=args.val_limit,
@@ -77,7 +79,8 @@ def main(args: argparse.Namespace) -> int:
     except ValueError as err:
         raise InputError(f"--aux {args.aux}: expected modalities among thermal, radar, depth") from err
     summary = train(cfg, pcfg)
-    card = {"name": args.out.stem, "data": args.data, "input_sizes": {"train_crop": list(cfg.augment.size),
+    train_input = "strips 320 wide, full frame height" if sim else list(cfg.augment.size)
+    card = {"name": args.out.stem, "data": args.data, "input_sizes": {"train": train_input,
             "rgb": [[1280, 720], [960, 540], [640, 360]]}, "train": summary, "metrics": None}
     if args.data == "sim" and args.eval_frames > 0:
         card["metrics"] = _card_metrics(args, pcfg)
@@ -109,7 +112,7 @@ def save_curve(summary: dict, metrics: dict | None, path: Path) -> Path:
     ax.set_xlabel("epoch")
     ax.xaxis.set_major_locator(matplotlib.ticker.MaxNLocator(integer=True))
     ax.set_ylabel("detection loss (box + class)")
-    map50 = ((metrics or {}).get("map") or {}).get("all", {}).get("all", {}).get("map50")  # all modalities on
+    map50 = ((metrics or {}).get("by_resolution") or {}).get("640x360", {}).get("map50")  # every sensor on
     val = [(r["epoch"], r["val_map50"]) for r in summary.get("curve", []) if r.get("val_map50") is not None]
     if val:  # folder data: the validation mAP of every epoch; the best one is the result
         ax2 = ax.twinx()
@@ -135,7 +138,7 @@ def save_curve(summary: dict, metrics: dict | None, path: Path) -> Path:
 
 
 def _check(args: argparse.Namespace) -> None:
-    if args.epochs < (0 if args.init else 1) or args.batch < 1:  # --epochs 0 --init X: import only
+    if args.epochs < (0 if args.init else 1) or (args.batch is not None and args.batch < 1):  # --epochs 0 --init
         raise InputError(f"--epochs and --batch must be at least 1, or --epochs 0 with --init "
                          f"(got {args.epochs}, {args.batch})")
     if args.data != "sim" and not Path(args.data).is_dir():
@@ -155,11 +158,11 @@ def _pair(text: str, flag: str, kind, sep: str = "x") -> tuple:
 
 
 def _card_metrics(args: argparse.Namespace, pcfg) -> dict:
-    """Held-out sim mAP (all modalities and each one off) and contributions, for the card."""
-    from respecd.lab.detector.evaluate import evaluate, sim_eval_set
+    """Held-out sim mAP per resolution and with each sensor off, contributions, faithfulness, for the card."""
+    from respecd.lab.detector.evaluate import evaluate_sim
     from respecd.perception.detector import FusionDetector
 
     eval_cfg = pcfg.model_copy(update={"weights": str(args.out), "score_threshold": 0.01})
-    detector = FusionDetector.load(eval_cfg)
-    report = evaluate(detector, sim_eval_set(eval_cfg, args.eval_frames), progress=not args.quiet)
-    return {"eval_frames_per_scenario": args.eval_frames, "rgb": [640, 360], **report}
+    report = evaluate_sim(FusionDetector.load(eval_cfg), args.eval_frames, progress=not args.quiet)
+    keep = ("by_resolution", "ablation", "contributions", "faithfulness", "frames", "attribution")
+    return {"eval_frames_per_scenario": args.eval_frames, **{k: report[k] for k in keep}}

@@ -1,9 +1,22 @@
-"""Training augmentation: scale + crop, mosaic, flip, RGB gain, modality dropout; and batching.
+"""Training augmentation: strips and crops, mosaic, flip, RGB gain, modality dropout; and batching.
 
-Crops keep objects at the pixel sizes the detector meets at 640x360 .. 1280x720 (scale
-0.6-2.0 of a 640x360 render) while the network trains on small 256x160 windows, which
-is what makes a from-scratch CPU training fit in minutes. Modality dropout zeroes a
-channel and its presence flag, as a switched-off sensor does at run time.
+* ``strip`` (the simulator): a full-height window of a frame rendered at one of the RGB
+  resolutions the controller can choose, zoomed 0.8-1.25x. Every person the camera shows
+  fits in it whole (at 1280x720 people stand between rows 0 and ~570), so the network learns
+  boxes from a few pixels up to the full frame height at their real pixel sizes, and the
+  large ones land on the P4 and P5 heads.
+* ``scale_crop`` / ``mosaic`` (decoded photo datasets): a zoomed window of a fixed size.
+
+A box the window cuts (it keeps less than ``keep_cut`` of its area) becomes "ignore": a
+half person is neither a positive (the net would learn to stop boxes at a crop edge) nor a
+negative. A box already cut by the frame itself stays a positive, as at run time.
+
+Modality dropout zeroes a channel and its presence flag, as a switched-off sensor does at
+run time; every sensor is sometimes the only one on (``AugmentConfig.keep``). Labels follow
+the evidence: a person whom no remaining sensor can see (behind a curtain with the radar
+dropped) is removed from the targets, and one only a dark RGB frame hints at (the camera's
+signal below ``rgb_min_signal``) is ignored. So the net is never taught to find people
+without evidence, nor to do without the one sensor that sees them.
 """
 
 from __future__ import annotations
@@ -19,54 +32,80 @@ from respecd.lab.detector.data import Sample
 
 @dataclass(frozen=True)
 class AugmentConfig:
-    size: tuple[int, int] = (256, 160)  # crop width, height (multiples of 32)
-    scale: tuple[float, float] = (0.6, 2.0)  # log-uniform zoom of the source sample
-    mosaic: float = 0.5  # probability of a 4-sample mosaic
+    size: tuple[int, int] = (256, 160)  # crop width, height for scale_crop / mosaic (multiples of 32)
+    scale: tuple[float, float] = (0.6, 2.0)  # log-uniform zoom of the source sample (crops)
+    zoom: tuple[float, float] = (0.8, 1.25)  # log-uniform zoom of a strip
+    mosaic: float = 0.5  # probability of a 4-sample mosaic (crops)
     flip: float = 0.5
     rgb_gain: tuple[float, float] = (0.6, 1.4)
-    drop_aux_each: float = 0.15  # per non-RGB modality
-    drop_aux_all: float = 0.15  # RGB only: "still detects by day with every non-RGB channel zeroed"
-    drop_rgb: float = 0.1  # non-RGB only: thermal must carry the night alone
-    target_bias: float = 0.7  # probability that a crop is centred near a person
+    # which sensors stay on, with what probability (a sensor the sample lacks is off anyway)
+    keep: tuple[tuple[tuple[str, ...], float], ...] = (
+        (("rgb", "thermal", "radar"), 0.40),
+        (("rgb",), 0.15),
+        (("rgb", "thermal"), 0.08),
+        (("rgb", "radar"), 0.08),
+        (("thermal", "radar"), 0.10),
+        (("thermal",), 0.07),
+        (("radar",), 0.12),
+    )
+    rgb_min_signal: float = 0.04  # RGB level per unit reflectance below which the camera sees only a hint
     pseudo_rgb: float = 0.0  # thermal-only samples: probability that RGB shows the thermal image (see pseudo_rgb)
+    target_bias: float = 0.8  # probability that a window is centred near a person
+    keep_cut: float = 0.9  # a box the window cuts to less than this share of its area is ignored
+    min_seen: float = 0.05  # a camera sees a person if at least this share of its light gets through
+
+
+def _window(s: Sample, z: float, ox: float, oy: float, w: int, h: int, cfg: AugmentConfig) -> Sample:
+    """The w x h window at (ox, oy) of the sample zoomed by z, boxes moved and cut with it."""
+    m = np.array([[z, 0, -ox], [0, z, -oy]], dtype=np.float64)  # source -> window
+    planes = np.stack([cv2.warpAffine(p, m, (w, h), flags=cv2.INTER_LINEAR, borderValue=0) for p in s.planes])
+    boxes = s.boxes * z - np.array([ox, oy, ox, oy], np.float32)
+    clipped = np.clip(boxes, 0, [w, h, w, h]).astype(np.float32)
+    area = lambda b: np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)  # noqa: E731
+    kept = area(clipped) / np.maximum(area(boxes), 1e-6)
+    keep = (kept >= 0.05) & ((clipped[:, 2:] - clipped[:, :2]) >= 2).all(1)
+    ignore = (s.ignore | (kept < cfg.keep_cut))[keep]
+    return Sample(planes, s.presence.copy(), clipped[keep], ignore, s.labels[keep], s.meta, s.seen[keep])
+
+
+def _centre(s: Sample, z: float, w: int, h: int, rng: np.random.Generator, cfg: AugmentConfig) -> tuple[float, float]:
+    """A window centre in zoomed pixels: near a random person (target_bias) or anywhere."""
+    usable = np.where(~s.ignore)[0]
+    if len(usable) and rng.random() < cfg.target_bias:
+        b = s.boxes[rng.choice(usable)]
+        return ((b[0] + b[2]) / 2 * z + rng.uniform(-0.35, 0.35) * w,
+                (b[1] + b[3]) / 2 * z + rng.uniform(-0.35, 0.35) * h)
+    src_h, src_w = s.planes.shape[1:]
+    return rng.uniform(0, src_w * z), rng.uniform(0, src_h * z)
+
+
+def strip(s: Sample, w: int, h: int, rng: np.random.Generator, cfg: AugmentConfig) -> Sample:
+    """A w x h window of the frame zoomed by a random factor; h is the padded frame height.
+
+    Zoomed out, the frame sits at the top with a black band below (like the stride padding
+    at run time); zoomed in, the window takes a random band of rows.
+    """
+    z = float(np.exp(rng.uniform(*np.log(cfg.zoom))))
+    cx, _ = _centre(s, z, w, h, rng, cfg)
+    excess = s.planes.shape[1] * z - h
+    oy = rng.uniform(0, excess) if excess > 0 else 0.0
+    return _window(s, z, cx - w / 2, oy, w, h, cfg)
 
 
 def scale_crop(s: Sample, w: int, h: int, rng: np.random.Generator, cfg: AugmentConfig) -> Sample:
     """A w x h window of the sample zoomed by a random factor, boxes moved with it."""
-    lo, hi = np.log(cfg.scale[0]), np.log(cfg.scale[1])
-    z = float(np.exp(rng.uniform(lo, hi)))
-    src_h, src_w = s.planes.shape[1:]
-    usable = np.where(~s.ignore)[0]
-    if len(usable) and rng.random() < cfg.target_bias:
-        b = s.boxes[rng.choice(usable)]
-        cx = (b[0] + b[2]) / 2 * z + rng.uniform(-0.35, 0.35) * w
-        cy = (b[1] + b[3]) / 2 * z + rng.uniform(-0.35, 0.35) * h
-    else:
-        cx, cy = rng.uniform(0, src_w * z), rng.uniform(0, src_h * z)
-    ox, oy = cx - w / 2, cy - h / 2  # window origin in zoomed pixels
-    m = np.array([[z, 0, -ox], [0, z, -oy]], dtype=np.float64)  # source -> window
-    planes = np.stack([cv2.warpAffine(p, m, (w, h), flags=cv2.INTER_LINEAR, borderValue=0) for p in s.planes])
-    boxes, ignore, keep = _move_boxes(s.boxes * z - [ox, oy, ox, oy], s.ignore, w, h)
-    return Sample(planes, s.presence.copy(), boxes, ignore, s.labels[keep], meta=s.meta)
-
-
-def _move_boxes(boxes: np.ndarray, ignore: np.ndarray, w: int, h: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Clip to the window; drop what is mostly outside, mark the half-cut as ignore."""
-    clipped = np.clip(boxes, 0, [w, h, w, h]).astype(np.float32)
-    area = lambda b: np.clip(b[:, 2] - b[:, 0], 0, None) * np.clip(b[:, 3] - b[:, 1], 0, None)  # noqa: E731
-    kept = area(clipped) / np.maximum(area(boxes), 1e-6)
-    big = ((clipped[:, 2:] - clipped[:, :2]) >= 2).all(1)
-    keep = (kept >= 0.15) & big
-    return clipped[keep], (ignore | (kept < 0.45))[keep], keep
+    z = float(np.exp(rng.uniform(*np.log(cfg.scale))))
+    cx, cy = _centre(s, z, w, h, rng, cfg)
+    return _window(s, z, cx - w / 2, cy - h / 2, w, h, cfg)
 
 
 def mosaic(samples: list[Sample], w: int, h: int, rng: np.random.Generator, cfg: AugmentConfig) -> Sample:
     """Four samples tiled around a random centre (YOLO mosaic), each scale-cropped to its tile."""
     cx, cy = int(rng.uniform(0.3, 0.7) * w), int(rng.uniform(0.3, 0.7) * h)
     tiles = ((0, 0, cx, cy), (cx, 0, w, cy), (0, cy, cx, h), (cx, cy, w, h))
-    planes = np.zeros((samples[0].planes.shape[0], h, w), dtype=np.uint8)
+    planes = np.zeros((samples[0].planes.shape[0], h, w), dtype=samples[0].planes.dtype)
     presence = np.ones_like(samples[0].presence)
-    boxes, ignore, labels = [], [], []
+    boxes, ignore, labels, seen = [], [], [], []
     for s, (x1, y1, x2, y2) in zip(samples, tiles, strict=True):
         part = scale_crop(s, x2 - x1, y2 - y1, rng, cfg)
         planes[:, y1:y2, x1:x2] = part.planes
@@ -74,27 +113,38 @@ def mosaic(samples: list[Sample], w: int, h: int, rng: np.random.Generator, cfg:
         boxes.append(part.boxes + [x1, y1, x1, y1])
         ignore.append(part.ignore)
         labels.append(part.labels)
+        seen.append(part.seen)
     has_rgb = all(s.meta.get("rgb", True) for s in samples)
     return Sample(planes, presence, np.concatenate(boxes), np.concatenate(ignore), np.concatenate(labels),
-                  meta={"rgb": has_rgb})
+                  meta={"rgb": has_rgb}, seen=np.concatenate(seen))
 
 
-def augment(pool, rng: np.random.Generator, cfg: AugmentConfig) -> Sample:
-    """One training sample drawn from ``pool`` (anything indexable of Samples)."""
+AUX = ("thermal", "radar")
+
+
+def augment(pool, rng: np.random.Generator, cfg: AugmentConfig, aux: tuple[str, ...] = AUX) -> Sample:
+    """One training crop drawn from ``pool`` (anything indexable of Samples)."""
     w, h = cfg.size
     if rng.random() < cfg.mosaic:
         s = mosaic([pool[int(i)] for i in rng.integers(len(pool), size=4)], w, h, rng, cfg)
     else:
         s = scale_crop(pool[int(rng.integers(len(pool)))], w, h, rng, cfg)
+    return photometric(s, rng, cfg, aux)
+
+
+def photometric(s: Sample, rng: np.random.Generator, cfg: AugmentConfig, aux: tuple[str, ...] = AUX) -> Sample:
+    """Horizontal flip, pseudo-RGB for thermal-only data, RGB gain and modality dropout, in place."""
+    w = s.planes.shape[2]
     if rng.random() < cfg.flip:
         s.planes = np.ascontiguousarray(s.planes[:, :, ::-1])
         s.boxes = np.stack([w - s.boxes[:, 2], s.boxes[:, 1], w - s.boxes[:, 0], s.boxes[:, 3]], 1).reshape(-1, 4)
     if not s.meta.get("rgb", True) and len(s.presence) and rng.random() < cfg.pseudo_rgb:
         pseudo_rgb(s, rng)
     if rng.random() < 0.5:
-        gain = rng.uniform(*cfg.rgb_gain)
-        s.planes[:3] = np.clip(s.planes[:3].astype(np.float32) * gain, 0, 255).astype(np.uint8)
-    drop_modalities(s, rng, cfg)
+        top = 255 if s.planes.dtype == np.uint8 else 1.0
+        gained = s.planes[:3].astype(np.float32) * rng.uniform(*cfg.rgb_gain)
+        s.planes[:3] = np.clip(gained, 0, top).astype(s.planes.dtype)
+    drop_modalities(s, rng, cfg, aux)
     return s
 
 
@@ -110,21 +160,42 @@ def pseudo_rgb(s: Sample, rng: np.random.Generator) -> None:
     s.meta = {**s.meta, "rgb": True}
 
 
-def drop_modalities(s: Sample, rng: np.random.Generator, cfg: AugmentConfig) -> None:
-    """Sensor-off augmentation; a sample without RGB keeps its only modalities."""
+def drop_modalities(s: Sample, rng: np.random.Generator, cfg: AugmentConfig, aux: tuple[str, ...] = AUX) -> None:
+    """Switch sensors off at random (``cfg.keep``); labels then follow what is left to see.
+
+    Every sensor is sometimes the only one on, so the net must detect from each alone. A
+    sample without RGB (a thermal-only dataset) keeps its only modalities.
+    """
     if not s.meta.get("rgb", True):
         return
-    n_aux = len(s.presence)
-    r = rng.random()
-    if r < cfg.drop_aux_all:
-        drop = np.ones(n_aux, dtype=bool)
-    else:
-        drop = rng.random(n_aux) < cfg.drop_aux_each
-    for i in np.where(drop)[0]:
-        s.planes[3 + i] = 0
-        s.presence[i] = 0.0
-    if not drop.all() and rng.random() < cfg.drop_rgb:
-        s.planes[:3] = 0
+    names = ("rgb", *aux)
+    present = {"rgb", *(name for i, name in enumerate(aux) if s.presence[i] > 0)}
+    subsets, weights = zip(*cfg.keep, strict=True)
+    chosen = set(subsets[int(rng.choice(len(subsets), p=np.asarray(weights) / sum(weights)))])
+    keep = (chosen & present) or present
+    for m, name in enumerate(names):
+        if name in keep or name not in present:
+            continue
+        if m == 0:
+            s.planes[:3] = 0
+        else:
+            s.planes[2 + m] = 0
+            s.presence[m - 1] = 0.0
+    _follow_evidence(s, keep, cfg)
+
+
+def _follow_evidence(s: Sample, on: set[str], cfg: AugmentConfig) -> None:
+    """People whom no sensor left on can see are no longer targets; those only a dark RGB frame
+    hints at are ignored (neither taught nor punished). The radar sees through obscurants."""
+    if len(s.boxes) == 0:
+        return
+    rgb = ("rgb" in on) & (s.seen[:, 0] >= cfg.min_seen)
+    bright = s.meta.get("rgb_signal", 1.0) >= cfg.rgb_min_signal
+    strong = (rgb & bright) | (("thermal" in on) & (s.seen[:, 1] >= cfg.min_seen))
+    strong |= ("radar" in on) or ("depth" in on)
+    keep = strong | rgb | s.ignore
+    s.ignore = (s.ignore | ~strong)[keep]
+    s.boxes, s.labels, s.seen = s.boxes[keep], s.labels[keep], s.seen[keep]
 
 
 def collate(samples: list[Sample]) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -132,7 +203,10 @@ def collate(samples: list[Sample]) -> tuple[torch.Tensor, torch.Tensor, torch.Te
 
     Ignore boxes are left out of the targets (the loss neither rewards nor trains them).
     """
-    x = torch.from_numpy(np.stack([s.planes for s in samples])).float().div_(255)  # (B, C, H, W)
+    stacked = np.stack([s.planes for s in samples])
+    x = torch.from_numpy(stacked).float()  # (B, C, H, W)
+    if stacked.dtype == np.uint8:
+        x = x.div_(255)
     presence = torch.from_numpy(np.stack([s.presence for s in samples]))
     kept = [(s.boxes[~s.ignore], s.labels[~s.ignore]) for s in samples]
     m = max(1, max(len(b) for b, _ in kept))

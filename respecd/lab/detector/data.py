@@ -1,10 +1,7 @@
-"""Datasets for training and evaluation: the simulated rover and the LLVIP layout.
+"""Samples (the detector's aligned input with its boxes) and the LLVIP-layout dataset.
 
-A ``Sample`` is the detector's aligned input (uint8 planes, to keep thousands in memory)
-with its boxes. Simulated samples are rendered once into memory from many segments of a
-seeded world (every segment draws its own light, people, distances, speeds and
-occluders: that is the domain randomization), with sensor settings drawn per sample too.
-LLVIP-layout folders (``visible/``, ``infrared/``, ``Annotations/*.xml``) load lazily.
+Simulated samples are rendered on demand (``simdata.py``); LLVIP-layout folders
+(``visible/``, ``infrared/``, ``Annotations/*.xml``) load lazily, as uint8 planes.
 """
 
 from __future__ import annotations
@@ -24,26 +21,31 @@ from respecd.perception.config import PerceptionConfig
 
 MIN_VISIBLE = 0.3  # a person less visible than this (behind a solid occluder) is "ignore" ground truth
 MIN_BOX_PX = 4.0  # ... and so is one smaller than this on either side
-CONDITIONS: dict[str, tuple[str, ...]] = {
-    "day": ("good-light-static", "good-light-moving"),
-    "night": ("poor-light-static", "poor-light-moving"),
-    "occlusion": ("occlusion-partial", "occlusion-smoke"),
-    "motion": ("good-light-moving", "poor-light-moving"),
-}
 
 
 @dataclass
 class Sample:
-    planes: np.ndarray  # uint8 (C, H, W): R, G, B, aux... in 0..255 (x/255 = network input)
+    """The detector's input (R, G, B, aux...) with its boxes.
+
+    ``planes`` is uint8 0..255 for decoded photos (x / 255 is the network input) or float32
+    0..1 for rendered frames (kept as the daemon feeds them: a 0.05 K thermal step survives).
+    ``seen`` holds, per box, the share of its light that reaches the RGB and the thermal
+    camera through smoke, fog or a curtain (1 = clear; the radar sees through all three).
+    """
+
+    planes: np.ndarray  # (C, H, W) uint8 0..255 or float32 0..1
     presence: np.ndarray  # float32 (A,)
     boxes: np.ndarray  # float32 (M, 4) x1y1x2y2 pixels
     ignore: np.ndarray  # bool (M,)
     labels: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))  # (M,)
     meta: dict = field(default_factory=dict)
+    seen: np.ndarray = field(default_factory=lambda: np.ones((0, 2), dtype=np.float32))  # (M, 2) rgb, thermal
 
     def __post_init__(self) -> None:
         if len(self.labels) != len(self.boxes):
             self.labels = np.zeros(len(self.boxes), dtype=np.int64)
+        if len(self.seen) != len(self.boxes):
+            self.seen = np.ones((len(self.boxes), 2), dtype=np.float32)
 
 
 def to_sample(aligned_tensor: np.ndarray, presence: np.ndarray, size: tuple[int, int], boxes: np.ndarray,
@@ -52,8 +54,6 @@ def to_sample(aligned_tensor: np.ndarray, presence: np.ndarray, size: tuple[int,
     planes = np.round(aligned_tensor[:, :h, :w] * 255).astype(np.uint8)  # drop the stride padding
     return Sample(planes, presence.astype(np.float32), boxes.astype(np.float32).reshape(-1, 4), ignore, meta=meta)
 
-
-# --- the simulated rover -------------------------------------------------------------------------
 
 def progress(iterable, enabled: bool, **kwargs):
     """tqdm when asked; the bare iterable otherwise (a disabled tqdm still starts its monitor thread)."""
@@ -64,61 +64,12 @@ def progress(iterable, enabled: bool, **kwargs):
     return tqdm(iterable, leave=False, **kwargs)
 
 
-def sim_samples(config: PerceptionConfig, seed: int, segments: int, per_segment: int,
-                rgb_size: tuple[int, int] = (640, 360), scenarios: tuple[str, ...] | None = None,
-                randomize_sensors: bool = True, show_progress: bool = False) -> list[Sample]:
-    """Render ``segments x per_segment`` samples from the world of ``seed``.
-
-    Segment ``i`` runs scenario ``i mod 6`` (or of ``scenarios``) with its own random draw;
-    times inside it are uniform. With ``randomize_sensors`` the RGB rate (hence exposure
-    and blur), thermal resolution and radar mode vary per sample.
-    """
-    from respecd.sim.world import SCENARIOS, SimulationConfig, World
-
-    names = list(scenarios or SCENARIOS)
-    sim = SimulationConfig(scenarios=names, loop=True)
-    world = World(sim, seed)
-    aligner = Aligner(config)
-    rng = np.random.default_rng([seed, 7])
-    out: list[Sample] = []
-    for i in progress(range(segments * per_segment), show_progress, desc="render", unit="frame"):
-        t = (i // per_segment + rng.uniform(0.02, 0.98)) * sim.scenario_duration_s
-        out.append(render_sample(world.state_at(t), aligner, rng, rgb_size, randomize_sensors))
-    return out
-
-
-def render_sample(state, aligner: Aligner, rng: np.random.Generator, rgb_size: tuple[int, int],
-                  randomize: bool) -> Sample:
-    """All modalities of one simulated instant -> aligned Sample with ground truth."""
-    from respecd.sim.render import ground_truth, render_depth, render_radar, render_rgb, render_thermal
-
-    rate = float(rng.choice([5.0, 10.0, 15.0, 30.0])) if randomize else 30.0
-    t_res = ((160, 120), (320, 240))[int(rng.integers(2))] if randomize else (160, 120)
-    mode = ("range", "velocity")[int(rng.integers(2))] if randomize else "range"
-    data = {
-        "rgb": render_rgb(state, rgb_size, 1.0 / rate, rng),
-        "thermal": render_thermal(state, t_res, rng),
-        "radar": render_radar(state, mode, 10.0, rng),
-    }
-    if "depth" in aligner.aux:
-        data["depth"] = render_depth(state, (640, 480), rng)
-    frames = {k: Frame(modality=k, t=state.t, seq=0, data=v) for k, v in data.items()}  # type: ignore[arg-type]
-    aligned = aligner.align(frames)
-    boxes, ignore = gt_arrays(ground_truth(state, rgb_size))
-    meta = {"scenario": state.scenario, "light": state.light, "t": state.t}
-    return to_sample(aligned.tensor, aligned.presence, aligned.size, boxes, ignore, meta)
-
-
 def gt_arrays(gt: list[dict]) -> tuple[np.ndarray, np.ndarray]:
     boxes = np.array([g["box"] for g in gt], dtype=np.float32).reshape(-1, 4)
     wh = boxes[:, 2:] - boxes[:, :2]
     ignore = np.array([g["visible"] < MIN_VISIBLE for g in gt], dtype=bool).reshape(-1)
     ignore |= (wh < MIN_BOX_PX).any(1)
     return boxes, ignore
-
-
-def condition_of(scenario: str) -> list[str]:
-    return [c for c, names in CONDITIONS.items() if scenario in names]
 
 
 # --- LLVIP layout ---------------------------------------------------------------------------------

@@ -1,9 +1,23 @@
-"""Evaluation: mAP with and without each modality, and mean contributions per condition.
+"""Evaluation: accuracy per RGB resolution, the cost of each sensor, contributions and whether
+their ranking is faithful.
 
-Held-out simulated frames come from world seeds the training never uses (training uses
-``seed``; evaluation ``EVAL_SEED`` onwards), at the profile's default sensor settings.
-Removing a modality zeroes its channel and clears its presence flag, exactly what the
-daemon feeds the detector when that sensor is off.
+Held-out simulated instants come from a world seed training never uses (``EVAL_SEED``),
+two per scenario run, at the profile's default sensor settings and the daemon's alignment.
+Per instant:
+
+* at each RGB resolution the controller can choose, the detector with every sensor on:
+  mAP@0.5 per condition (``by_resolution``) and which head level each detection came from;
+* at the attribution resolution (640x360 unless asked), every sensor on and each one off
+  (zero plane, presence 0: what the daemon feeds a disabled sensor): mAP per condition
+  (``ablation``, and ``map`` with mAP@0.5:0.95 too);
+* at the daemon's operating point (its score threshold and ``attribution_targets``), the
+  contributions of the configured method (``contributions``: mean scene score over frames
+  with a detection) and the deletion test (``faithfulness``): for each attributed box its
+  confidence with a sensor off is the best detection overlapping it (IoU >= 0.5) in that
+  sensor-off pass, 0 if none; the box counts as faithful when switching off its top-ranked
+  modality costs more confidence than switching off its second-ranked one.
+
+Detections are scored down to confidence 0.01 for mAP (the usual protocol).
 """
 
 from __future__ import annotations
@@ -13,40 +27,33 @@ from collections import defaultdict
 import numpy as np
 import torch
 
-from respecd.lab.detector.data import CONDITIONS, Sample, condition_of
-from respecd.lab.detector.metrics import ImageResult, mean_ap
-from respecd.perception.attribution import grouped
+from respecd.lab.detector.data import Sample
+from respecd.lab.detector.metrics import ImageResult, iou_matrix, mean_ap
+from respecd.perception.attribution import Attributor
+from respecd.perception.boxes import pad_to_stride, postprocess
+from respecd.perception.config import PerceptionConfig
 from respecd.perception.detector import FusionDetector
+from respecd.perception.model import STRIDES
 
 EVAL_SEED = 1_000_003  # far from any training seed
+OPERATING_THRESHOLD = PerceptionConfig().score_threshold  # the daemon's: what it attributes
 
 
 def ablations(aux: tuple[str, ...]) -> dict[str, tuple[str, ...]]:
     """Name -> modalities removed: all on, each one off, and RGB alone."""
-    out: dict[str, tuple[str, ...]] = {"all": ()}
+    out: dict[str, tuple[str, ...]] = {"none": ()}
     for name in ("rgb", *aux):
-        out[f"no-{name}"] = (name,)
-    out["rgb-only"] = tuple(aux)
+        out[f"no_{name}"] = (name,)
+    out["rgb_only"] = tuple(aux)
     return out
-
-
-def sim_eval_set(pcfg, per_scenario: int, rgb_size: tuple[int, int] = (640, 360), seed: int = EVAL_SEED,
-                 progress: bool = False) -> list[Sample]:
-    """``per_scenario`` frames of each scenario, one random draw (segment) per 2 frames."""
-    from respecd.lab.detector.data import sim_samples
-
-    segments = max(1, per_scenario // 2) * 6
-    return sim_samples(pcfg, seed, segments, 2, rgb_size, randomize_sensors=False, show_progress=progress)
 
 
 def sample_input(sample: Sample, aux: tuple[str, ...], removed: tuple[str, ...]) -> tuple[torch.Tensor, torch.Tensor]:
     """Sample -> padded (1, C, Hp, Wp) tensor and (1, A) presence, with ``removed`` zeroed."""
-    from respecd.perception.boxes import pad_to_stride
-
     c, h, w = sample.planes.shape
     hp, wp = pad_to_stride(h, w)
     x = np.zeros((1, c, hp, wp), dtype=np.float32)
-    x[0, :, :h, :w] = sample.planes / np.float32(255)
+    x[0, :, :h, :w] = sample.planes / np.float32(255) if sample.planes.dtype == np.uint8 else sample.planes
     presence = sample.presence.copy()
     for name in removed:
         if name == "rgb":
@@ -58,59 +65,128 @@ def sample_input(sample: Sample, aux: tuple[str, ...], removed: tuple[str, ...])
     return torch.from_numpy(x), torch.from_numpy(presence[None])
 
 
-def evaluate(detector: FusionDetector, samples: list[Sample], attribute: bool = True, progress: bool = False) -> dict:
-    """{"map": {condition: {ablation: {map50, map50_95}}}, "contributions": {condition: {...}}, "frames": {...}}."""
-    from respecd.lab.detector.data import progress as progress_bar
+class Evaluation:
+    """Accumulates per-instant results; ``report()`` gives the JSON body of ``eval.json``."""
 
-    aux = detector.model.spec.aux_modalities
-    results: dict[str, dict[str, list[ImageResult]]] = defaultdict(lambda: defaultdict(list))
-    contrib: dict[str, list[dict[str, float]]] = defaultdict(list)
-    for sample in progress_bar(samples, progress, desc="eval"):
-        conds = ["all", *(condition_of(sample.meta.get("scenario", "")) or [sample.meta.get("scenario", "data")])]
-        for name, removed in ablations(aux).items():
-            x, presence = sample_input(sample, aux, removed)
-            scores = _predict(detector, x, presence, attribute and name == "all")
-            image = ImageResult(scores[0], scores[1], sample.boxes, sample.ignore)
-            for cond in conds:
-                results[cond][name].append(image)
-            if scores[2] is not None:
-                for cond in conds:
-                    contrib[cond].append(scores[2])
-    return {
-        "map": {cond: {name: mean_ap(images) for name, images in by.items()} for cond, by in results.items()},
-        "contributions": {cond: _mean_dict(rows) for cond, rows in contrib.items()},
-        "frames": {cond: len(by["all"]) for cond, by in results.items()},
-        "attributed": {cond: len(rows) for cond, rows in contrib.items()},
-        "detections": {cond: {name: detection_count(images) for name, images in by.items()}
-                       for cond, by in results.items()},
-    }
+    def __init__(self, detector: FusionDetector) -> None:
+        self.detector = detector
+        self.aux = detector.model.spec.aux_modalities
+        self.attributor = Attributor(detector.model, detector.config.attribution_method)
+        self.by_resolution: dict[str, dict[str, list[ImageResult]]] = defaultdict(lambda: defaultdict(list))
+        self.levels: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(len(STRIDES), dtype=np.int64))
+        self.tallest: dict[str, float] = defaultdict(float)
+        self.ablation: dict[str, dict[str, list[ImageResult]]] = defaultdict(lambda: defaultdict(list))
+        self.contributions: dict[str, list[dict[str, float]]] = defaultdict(list)
+        self.faithful: dict[str, list[bool]] = defaultdict(list)
+        self.attributed_frames: dict[str, int] = defaultdict(int)
+        self.attribution_size: str | None = None
+        self._all_on: tuple[int, ImageResult | None] = (0, None)
+
+    def _predict(self, x: torch.Tensor, presence: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        cfg, model = self.detector.config, self.detector.model
+        hw = tuple(x.shape[2:])
+        with torch.inference_mode():
+            all_boxes, all_scores = model.decode(model(x, presence), hw)
+            boxes, scores, _, anchors = postprocess(all_boxes, all_scores, hw, cfg.score_threshold,
+                                                    cfg.iou_threshold, cfg.max_detections)[0]
+        return boxes.numpy(), scores.numpy(), anchors.numpy()
+
+    def add_resolution(self, sample: Sample, conditions: list[str]) -> None:
+        """Every sensor on at this sample's RGB size: mAP and head levels."""
+        h, w = sample.planes.shape[1:]
+        key = f"{w}x{h}"
+        x, presence = sample_input(sample, self.aux, ())
+        boxes, scores, anchors = self._predict(x, presence)
+        image = ImageResult(boxes, scores, sample.boxes, sample.ignore)
+        self._all_on = (id(sample), image)  # add_attributed on the same sample reuses it
+        for cond in conditions:
+            self.by_resolution[key][cond].append(image)
+        strong = scores >= OPERATING_THRESHOLD
+        self.levels[key] += np.bincount(_level_of(anchors[strong], *x.shape[2:]), minlength=len(STRIDES))
+        if strong.any():
+            self.tallest[key] = max(self.tallest[key], float((boxes[strong, 3] - boxes[strong, 1]).max()))
+
+    def add_attributed(self, sample: Sample, conditions: list[str]) -> None:
+        """Each sensor off (mAP), contributions and the deletion test at this sample's size."""
+        h, w = sample.planes.shape[1:]
+        self.attribution_size = f"{w}x{h}"
+        cfg = self.detector.config
+        x, presence = sample_input(sample, self.aux, ())
+        result = self.attributor(x, presence, OPERATING_THRESHOLD, cfg.iou_threshold, cfg.max_detections,
+                                 cfg.attribution_targets)
+        k = 0 if result.ranking is None else len(result.ranking)
+        targets, confidences = result.detections[0][:k].numpy(), result.detections[1][:k].numpy()
+        after = np.zeros((k, len(result.modalities)))
+        for name, removed in ablations(self.aux).items():
+            reused = self._all_on[1] if not removed and self._all_on[0] == id(sample) else None
+            if reused is not None:
+                image = reused
+            else:
+                boxes, scores, _ = self._predict(*sample_input(sample, self.aux, removed))
+                image = ImageResult(boxes, scores, sample.boxes, sample.ignore)
+            for cond in conditions:
+                self.ablation[cond][name].append(image)
+            if len(removed) == 1 and k:
+                after[:, result.modalities.index(removed[0])] = _matched_confidence(targets, boxes, scores)
+        faithful = _faithful(result.ranking.numpy(), confidences[:, None] - after) if result.ranking is not None else []
+        for cond in conditions:
+            if k:
+                self.faithful[cond].extend(faithful)
+            if result.scene is not None:
+                self.contributions[cond].append(result.scene)
+                self.attributed_frames[cond] += 1
+
+    def report(self) -> dict:
+        ablation = {c: {n: mean_ap(images) for n, images in by.items()} for c, by in self.ablation.items()}
+        by_resolution = {}
+        for size, by in sorted(self.by_resolution.items(), key=lambda kv: int(kv[0].split("x")[0])):
+            overall = mean_ap(by["all"])
+            by_resolution[size] = {
+                "map50": overall["map50"], "map50_95": overall["map50_95"],
+                "by_condition": {c: mean_ap(images)["map50"] for c, images in by.items() if c != "all"},
+                "levels": dict(zip((f"P{int(np.log2(s))}" for s in STRIDES), self.levels[size].tolist(), strict=True)),
+                "tallest_detection_px": round(self.tallest[size], 1),
+            }
+        cfg = self.detector.config
+        return {
+            "by_resolution": by_resolution,
+            "ablation": {c: {n: v["map50"] for n, v in by.items()} for c, by in ablation.items()},
+            "map": ablation,
+            "contributions": {c: _mean_dict(rows) for c, rows in self.contributions.items()},
+            "faithfulness": {c: float(np.mean(v)) for c, v in self.faithful.items() if v},
+            "frames": {c: len(by["none"]) for c, by in self.ablation.items()},
+            "detections": {c: {n: detection_count(images) for n, images in by.items()} for c, by in self.ablation.items()},
+            "attributed": dict(self.attributed_frames),
+            "attributed_detections": {c: len(v) for c, v in self.faithful.items()},
+            "attribution": {"method": cfg.attribution_method, "rgb": self.attribution_size,
+                            "score_threshold": OPERATING_THRESHOLD, "targets": cfg.attribution_targets},
+        }
 
 
-def detection_count(images: list[ImageResult], threshold: float | None = None) -> int:
+def detection_count(images: list[ImageResult], threshold: float = OPERATING_THRESHOLD) -> int:
     """Detections at the daemon's operating threshold (the profile default), as the paper counts them."""
-    if threshold is None:
-        from respecd.perception.config import PerceptionConfig
-
-        threshold = PerceptionConfig().score_threshold
     return int(sum((im.pred_scores >= threshold).sum() for im in images))
 
 
-def _predict(detector: FusionDetector, x: torch.Tensor, presence: torch.Tensor, attribute: bool):
-    from respecd.perception.attribution import attribute as attribute_fn
-    from respecd.perception.boxes import postprocess
+def _level_of(anchors: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Head level index (0 = P3) of each anchor index, in the head's output order."""
+    ends = np.cumsum([(height // s) * (width // s) for s in STRIDES])
+    return np.searchsorted(ends, anchors, side="right")
 
-    cfg, model = detector.config, detector.model
-    if attribute:
-        dets, _, scene = attribute_fn(model, x, presence, cfg.score_threshold, cfg.iou_threshold,
-                                      cfg.max_detections, cfg.attribution_targets)
-        contributions = grouped(model.spec.channels, scene) if scene is not None else None
-    else:
-        with torch.inference_mode():
-            boxes, scores = model.decode(model(x, presence), tuple(x.shape[2:]))
-            dets = postprocess(boxes, scores, tuple(x.shape[2:]), cfg.score_threshold, cfg.iou_threshold,  # type: ignore[assignment]
-                               cfg.max_detections)[0]
-        contributions = None
-    return dets[0].detach().numpy(), dets[1].detach().numpy(), contributions
+
+def _matched_confidence(targets: np.ndarray, boxes: np.ndarray, scores: np.ndarray) -> np.ndarray:
+    """Per target box, the best confidence among ``boxes`` overlapping it with IoU >= 0.5 (0 if none)."""
+    if len(boxes) == 0:
+        return np.zeros(len(targets))
+    overlap = iou_matrix(targets, boxes) >= 0.5  # (K, P)
+    return np.where(overlap, scores[None, :], 0.0).max(1)
+
+
+def _faithful(ranking: np.ndarray, drops: np.ndarray) -> list[bool]:
+    """Per target: does switching off its top-ranked modality cost more than its second-ranked?"""
+    order = np.argsort(-ranking, axis=1, kind="stable")
+    rows = np.arange(len(ranking))
+    return (drops[rows, order[:, 0]] > drops[rows, order[:, 1]]).tolist()
 
 
 def _mean_dict(rows: list[dict[str, float]]) -> dict[str, float]:
@@ -120,5 +196,43 @@ def _mean_dict(rows: list[dict[str, float]]) -> dict[str, float]:
 
 
 def condition_order(report: dict) -> list[str]:
+    from respecd.lab.detector.simdata import CONDITIONS
+
     known = [c for c in ("all", *CONDITIONS) if c in report["map"]]
     return known + sorted(c for c in report["map"] if c not in known)
+
+
+def evaluate_samples(detector: FusionDetector, samples, progress: bool = False) -> dict:
+    """A dataset (anything with len and [i]): ablation, contributions and the deletion test at its size."""
+    from respecd.lab.detector.data import progress as progress_bar
+
+    evaluation = Evaluation(detector)
+    for i in progress_bar(range(len(samples)), progress, desc="eval"):
+        sample = samples[i]
+        evaluation.add_attributed(sample, ["all", sample.meta.get("scenario", "data")])
+    return evaluation.report()
+
+
+def evaluate_sim(detector: FusionDetector, per_scenario: int, attribution_size: tuple[int, int] = (640, 360),
+                 seed: int = EVAL_SEED, progress: bool = False) -> dict:
+    """Held-out simulated instants, ``per_scenario`` of each scenario, at every RGB resolution."""
+    from respecd.lab.detector.data import progress as progress_bar
+    from respecd.lab.detector.simdata import RESOLUTIONS, SimFrames, condition_of
+
+    frames = SimFrames(detector.config, seed)
+    n = len(frames.sim.scenarios)
+    instants = [(run * n + s, fraction) for run in range(max(1, per_scenario // 2)) for s in range(n)
+                for fraction in (0.3, 0.7)]  # two instants per scenario run
+    sizes: list[tuple[int, int]] = sorted({*RESOLUTIONS, (attribution_size[0], attribution_size[1])})
+    evaluation = Evaluation(detector)
+    for segment, fraction in progress_bar(instants, progress, desc="eval", unit="instant"):
+        t = frames.time_in(segment, fraction)
+        for size in sizes:
+            rng = np.random.default_rng([seed, segment, int(fraction * 10), 0])  # same noise draws per size
+            sample = frames.sample(t, size, rng, randomize=False)
+            conditions = ["all", *condition_of(sample.meta["scenario"])]
+            if size in RESOLUTIONS:
+                evaluation.add_resolution(sample, conditions)
+            if size == tuple(attribution_size):
+                evaluation.add_attributed(sample, conditions)
+    return evaluation.report()

@@ -28,17 +28,22 @@ class LossGains:
 
 
 def assign(
-    scores: torch.Tensor, boxes: torch.Tensor, points: torch.Tensor, gt_boxes: torch.Tensor,
-    gt_labels: torch.Tensor, gt_mask: torch.Tensor, g: LossGains,
+    scores: torch.Tensor, boxes: torch.Tensor, points: torch.Tensor, strides: torch.Tensor, gt_boxes: torch.Tensor,
+    gt_labels: torch.Tensor, gt_mask: torch.Tensor, g: LossGains, reg_max: int,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Task-aligned assignment for one batch.
 
-    scores (B, N, nc) sigmoid, boxes (B, N, 4) px, points (N, 2) px, gt_boxes (B, M, 4),
-    gt_labels (B, M) long, gt_mask (B, M) bool. Returns target boxes (B, N, 4), target scores
-    (B, N, nc) and the foreground mask (B, N).
+    scores (B, N, nc) sigmoid, boxes (B, N, 4) px, points (N, 2) px, strides (N, 1) px,
+    gt_boxes (B, M, 4), gt_labels (B, M) long, gt_mask (B, M) bool. Returns target boxes
+    (B, N, 4), target scores (B, N, nc) and the foreground mask (B, N).
+
+    Candidates are the anchors inside a box that can also *represent* it: the DFL head
+    reaches at most reg_max - 1 strides to each side, so a P3 anchor (stride 8, 16 bins)
+    cannot draw a box taller than 240 px, nor a P4 one taller than 480. Without this a tall
+    person lands on P4 anchors that learn to stop at 480 px, and P5 is never trained.
     """
     bsz, n, nc = scores.shape
-    inside = _inside(points, gt_boxes) & gt_mask[:, :, None]  # (B, M, N)
+    inside = _inside(points, gt_boxes) & _reachable(points, strides, gt_boxes, reg_max) & gt_mask[:, :, None]
     iou = torch.stack([box_iou(gt_boxes[i], boxes[i]) for i in range(bsz)]).clamp(0)  # (B, M, N)
     cls_score = scores.gather(2, gt_labels[:, None, :].expand(bsz, n, -1)).transpose(1, 2)  # (B, M, N)
     metric = cls_score.pow(g.alpha) * iou.pow(g.beta) * inside
@@ -59,6 +64,13 @@ def assign(
     return t_boxes, t_scores, fg
 
 
+def _reachable(points: torch.Tensor, strides: torch.Tensor, gt_boxes: torch.Tensor, reg_max: int) -> torch.Tensor:
+    """(B, M, N): every side of the box within the anchor's DFL range (reg_max - 1 strides)."""
+    p = points[None, None]  # (1, 1, N, 2)
+    ltrb = torch.cat([p - gt_boxes[:, :, None, :2], gt_boxes[:, :, None, 2:] - p], -1)  # (B, M, N, 4) px
+    return ltrb.amax(-1) <= (reg_max - 1) * strides[None, None, :, 0]
+
+
 def _inside(points: torch.Tensor, gt_boxes: torch.Tensor) -> torch.Tensor:
     """(B, M, N): anchor centre strictly inside the box."""
     p = points[None, None]  # (1, 1, N, 2)
@@ -75,7 +87,8 @@ def detection_loss(
     points, strides = anchor_grid(*input_hw, device=box_logits.device)
     boxes = decode_boxes(box_logits, points, strides, reg_max)  # (B, N, 4) px
     with torch.no_grad():
-        t_boxes, t_scores, fg = assign(cls_logits.sigmoid(), boxes, points, gt_boxes, gt_labels, gt_mask, g)
+        t_boxes, t_scores, fg = assign(cls_logits.sigmoid(), boxes, points, strides, gt_boxes, gt_labels, gt_mask, g,
+                                       reg_max)
     norm = t_scores.sum().clamp(min=1.0)
     loss_cls = F.binary_cross_entropy_with_logits(cls_logits, t_scores, reduction="sum") / norm
     loss_box = box_logits.new_zeros(())

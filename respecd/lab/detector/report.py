@@ -1,5 +1,5 @@
-"""Evaluation output: a Markdown table (mAP per condition x ablation, mean contributions)
-and a PNG bar chart of the contributions per condition, plus the raw JSON."""
+"""Evaluation output: Markdown tables (mAP per resolution and condition, mAP with each sensor off,
+contributions and faithfulness), a PNG bar chart of the contributions per condition, and the raw JSON."""
 
 from __future__ import annotations
 
@@ -10,37 +10,61 @@ from pathlib import Path
 from respecd.lab.detector.evaluate import condition_order
 
 
-def _fmt(v: float) -> str:
+def _fmt(v: float | None) -> str:
     return "n/a" if v is None or (isinstance(v, float) and math.isnan(v)) else f"{v:.3f}"
 
 
+def _resolution_table(report: dict, conds: list[str]) -> list[str]:
+    sizes = list(report.get("by_resolution", {}))
+    if not sizes:
+        return []
+    rows = report["by_resolution"]
+    lines = ["mAP@0.5 with every sensor on, per RGB resolution (heads: detections >= 0.25 from P3 / P4 / P5)", "",
+             "| condition | " + " | ".join(sizes) + " |", "|---|" + "---|" * len(sizes)]
+    lines.append("| all | " + " | ".join(_fmt(rows[s]["map50"]) for s in sizes) + " |")
+    for cond in conds:
+        if cond != "all":
+            lines.append(f"| {cond} | " + " | ".join(_fmt(rows[s]["by_condition"].get(cond)) for s in sizes) + " |")
+    lines.append("| heads | " + " | ".join(" / ".join(str(v) for v in rows[s]["levels"].values()) for s in sizes)
+                 + " |")
+    lines.append("| tallest detection (px) | " + " | ".join(f"{rows[s]['tallest_detection_px']:.0f}" for s in sizes)
+                 + " |")
+    return lines + [""]
+
+
 def markdown(report: dict, title: str) -> str:
-    """Two tables: mAP@0.5 / mAP@0.5:0.95, and mean contribution scores per condition."""
+    """mAP per resolution; mAP@0.5 / mAP@0.5:0.95 with each sensor off; contributions and faithfulness."""
     conds = condition_order(report)
     names = list(report["map"][conds[0]])
-    lines = [f"# {title}", "", "mAP@0.5 / mAP@0.5:0.95 per condition, with every modality and with one removed", ""]
+    size = report.get("attribution", {}).get("rgb")
+    lines = [f"# {title}", "", *_resolution_table(report, conds)]
+    lines += [f"mAP@0.5 / mAP@0.5:0.95 at {size}, every sensor on and each one off", ""]
     lines.append("| condition | frames | " + " | ".join(names) + " |")
     lines.append("|---|---|" + "---|" * len(names))
     for cond in conds:
         cells = [f"{_fmt(report['map'][cond][n]['map50'])} / {_fmt(report['map'][cond][n]['map50_95'])}" for n in names]
         lines.append(f"| {cond} | {report['frames'][cond]} | " + " | ".join(cells) + " |")
     keys = _contribution_keys(report)
-    lines += ["", "Mean contribution scores (all modalities on; frames with at least one detection)", ""]
-    lines.append("| condition | attributed | " + " | ".join(keys) + " |")
-    lines.append("|---|---|" + "---|" * len(keys))
+    method = report.get("attribution", {}).get("method", "?")
+    lines += ["", f"Mean contribution ({method}; frames with a detection) and faithfulness (share of attributed "
+                  "boxes whose top-ranked sensor costs more when off than the second-ranked)", ""]
+    lines.append("| condition | attributed | " + " | ".join(keys) + " | boxes | faithfulness |")
+    lines.append("|---|---|" + "---|" * (len(keys) + 2))
     for cond in conds:
         row = report["contributions"].get(cond, {})
         lines.append(f"| {cond} | {report['attributed'].get(cond, 0)} | "
-                     + " | ".join(_fmt(row.get(k)) if row else "n/a" for k in keys) + " |")
+                     + " | ".join(_fmt(row.get(k)) if row else "n/a" for k in keys)
+                     + f" | {report['attributed_detections'].get(cond, 0)} | "
+                     + f"{_fmt(report['faithfulness'].get(cond))} |")
     return "\n".join(lines) + "\n"
 
 
 def _contribution_keys(report: dict) -> list[str]:
     for row in report["contributions"].values():
         if row:
-            ordered = ["r", "g", "b", "rgb"]
+            ordered = [k for k in ("r", "g", "b", "rgb") if k in row]
             return ordered + [k for k in row if k not in ordered]
-    return ["r", "g", "b", "rgb"]
+    return ["rgb"]
 
 
 def bar_chart(report: dict, path: Path, title: str) -> None:
@@ -52,16 +76,16 @@ def bar_chart(report: dict, path: Path, title: str) -> None:
 
     conds = [c for c in condition_order(report) if report["contributions"].get(c)]
     keys = [k for k in _contribution_keys(report) if k not in ("r", "g", "b")]
-    fig, ax = plt.subplots(figsize=(7, 3.6), dpi=120)
+    fig, ax = plt.subplots(figsize=(8, 3.6), dpi=120)
     width = 0.8 / max(1, len(keys))
     for i, key in enumerate(keys):
         xs = [j + (i - (len(keys) - 1) / 2) * width for j in range(len(conds))]
         ax.bar(xs, [report["contributions"][c].get(key, 0.0) for c in conds], width, label=key)
-    ax.set_xticks(range(len(conds)), conds)
+    ax.set_xticks(range(len(conds)), conds, fontsize=8)
     ax.set_xlabel("scene condition")
     ax.set_ylim(0, 1)
     ax.set_ylabel("mean contribution (0-1)")
-    ax.set_title(title)
+    ax.set_title(title, fontsize=9)
     ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8, title="modality")  # outside the bars
     fig.tight_layout()
     fig.savefig(path, bbox_inches="tight")

@@ -1,9 +1,12 @@
-"""Training loop: sim or LLVIP-layout data, AdamW + warmup/cosine, EMA weights, resumable.
+"""Training loop: sim or folder data, AdamW + warmup/cosine, EMA weights, resumable.
 
-Every epoch ends with a resume file (``OUT.resume``: model, EMA, optimizer, epoch);
-``--resume`` picks it up. The simulated pool is re-rendered deterministically from the
-seed, so a resumed run sees the same data. The final file holds the EMA weights (they
-generalize better than the raw ones after a short schedule) and a JSON card beside it.
+On the simulator every step renders fresh frames at one of the three RGB resolutions and
+trains on full-height strips of them (``simdata.SimStream``); a dataset folder gives
+fixed-size crops and mosaics of its images. Every epoch ends with a resume file
+(``OUT.resume``: model, EMA, optimizer, epoch); ``--resume`` picks it up, and since each
+epoch's batches come from a generator seeded by (seed, epoch) a resumed run sees the same
+data. The final file holds the EMA weights (they generalize better than the raw ones after
+a short schedule) and a JSON card beside it.
 """
 
 from __future__ import annotations
@@ -33,16 +36,15 @@ log = structlog.get_logger(__name__)
 
 @dataclass
 class TrainConfig:
-    data: str  # "sim" or an LLVIP-layout folder
+    data: str  # "sim" or a dataset folder
     out: Path
     epochs: int = 10
-    batch: int = 16
+    batch: int = 16  # folder data: crops per step (the simulator: sim_batch)
     lr: float = 2e-3
     weight_decay: float = 5e-4
     seed: int = 0
-    sim_segments: int = 300  # 50 runs of each of the six scenarios
-    sim_per_segment: int = 5  # frames per run: same draw, different instants
-    steps_per_epoch: int = 100  # 0: one pass over the pool in batches
+    sim_batch: int = 10  # strips per step at 640x360, fewer at larger sizes (simdata.SimStream)
+    steps_per_epoch: int = 100  # folder data: 0 = one pass over the pool in batches
     threads: int = 1
     resume: bool = False
     progress: bool = True
@@ -76,12 +78,28 @@ class EMA:
                 ema_v.copy_(v)
 
 
-def build_pool(cfg: TrainConfig, pcfg: PerceptionConfig):
-    """Training samples and validation samples (None for sim): rendered sim frames, or a folder read lazily."""
-    if cfg.data == "sim":
-        from respecd.lab.detector.data import sim_samples
+class CropSource:
+    """Training batches from a dataset of samples (a folder): crops and mosaics of one size."""
 
-        return sim_samples(pcfg, cfg.seed, cfg.sim_segments, cfg.sim_per_segment, show_progress=cfg.progress), None
+    def __init__(self, pool, cfg: TrainConfig, aux: tuple[str, ...]) -> None:
+        self.pool, self.cfg, self.aux = pool, cfg, aux
+
+    def __len__(self) -> int:
+        return len(self.pool)
+
+    def draw(self, rng: np.random.Generator):
+        batch = [augment(self.pool, rng, self.cfg.augment, self.aux) for _ in range(self.cfg.batch)]
+        return batch, self.cfg.augment.size
+
+
+def build_pool(cfg: TrainConfig, pcfg: PerceptionConfig):
+    """Where batches come from, and validation samples (None for sim): frames rendered per step
+    (the simulator), or a folder read lazily."""
+    aux = pcfg.model.aux_modalities
+    if cfg.data == "sim":
+        from respecd.lab.detector.simdata import SimFrames, SimStream
+
+        return SimStream(SimFrames(pcfg, cfg.seed), cfg.augment, cfg.sim_batch, aux), None
     from respecd.lab.detector.datasets import FolderSource, open_folder
 
     folder = open_folder(Path(cfg.data), pcfg.model.classes, cfg.modality, cfg.seed)
@@ -93,7 +111,8 @@ def build_pool(cfg: TrainConfig, pcfg: PerceptionConfig):
         raise InputError(f"--data {cfg.data}: no training images (only a val split)")
     step = max(1, math.ceil(len(folder.val) / max(1, cfg.val_limit)))
     val_scale = cfg.val_scale or cfg.data_scale
-    return FolderSource(folder.train, pcfg, cfg.data_scale), FolderSource(folder.val[::step], pcfg, val_scale)
+    return (CropSource(FolderSource(folder.train, pcfg, cfg.data_scale), cfg, aux),
+            FolderSource(folder.val[::step], pcfg, val_scale))
 
 
 def _optimizer(model: nn.Module, cfg: TrainConfig) -> torch.optim.Optimizer:
@@ -120,17 +139,16 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
     pcfg = pcfg or PerceptionConfig()
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
-    started = time.perf_counter()
+    started, cpu_started = time.perf_counter(), time.process_time()
     model = initial_model(cfg.init, pcfg.model)
     pcfg = pcfg.model_copy(update={"model": model.spec})  # the data follows the net (e.g. its aux modalities)
     pool, val = build_pool(cfg, pcfg)
-    render_s = time.perf_counter() - started
     freeze(model, cfg.freeze)
     model.train()
     keep_frozen_eval(model)
     ema = EMA(model)
     opt = _optimizer(model, cfg)
-    steps = cfg.steps_per_epoch or max(1, len(pool) // cfg.batch)
+    steps = cfg.steps_per_epoch or max(1, len(pool) // cfg.batch)  # type: ignore[arg-type]  # sim: steps set
     total = steps * cfg.epochs
     resume_path = cfg.out.with_name(cfg.out.name + ".resume")  # not *.pt: never packaged as weights
     first_epoch, curve = _maybe_resume(resume_path, cfg, model, ema, opt)
@@ -151,11 +169,11 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
         "data": cfg.data,
         "epochs": cfg.epochs,
         "steps": total,
-        "batch": cfg.batch,
-        "pool": len(pool),
-        "train_size": list(cfg.augment.size),
-        "render_s": round(render_s, 1),
+        "batch": cfg.sim_batch if cfg.data == "sim" else cfg.batch,
+        "pool": len(pool) if isinstance(pool, CropSource) else None,
+        "train_size": "strips 320 wide, full frame height" if cfg.data == "sim" else list(cfg.augment.size),
         "train_s": round(time.perf_counter() - started, 1),
+        "train_cpu_s": round(time.process_time() - cpu_started, 1),
         "seed": cfg.seed,
         "augment": asdict(cfg.augment),
         "epoch_loss": [(r["epoch"], r["loss"]) for r in curve],  # for the CLI's curve
@@ -215,14 +233,14 @@ def _epoch(model: checkpoint.Net, ema: EMA, opt: torch.optim.Optimizer, pool, cf
     from respecd.lab.detector.data import progress
 
     rng = np.random.default_rng([cfg.seed, epoch, 11])  # per epoch: a resumed run replays the same batches
-    w, h = cfg.augment.size
     running = 0.0
     bar = progress(range(steps), cfg.progress, desc=f"epoch {epoch + 1}/{cfg.epochs}")
     for i in bar:
         step = epoch * steps + i
         for group in opt.param_groups:
             group["lr"] = lr_at(step, total, cfg.lr)
-        x, presence, boxes, labels, mask = collate([augment(pool, rng, cfg.augment) for _ in range(cfg.batch)])
+        samples, (w, h) = pool.draw(rng)
+        x, presence, boxes, labels, mask = collate(samples)
         loss, parts = net_loss(model, model(x, presence), (h, w), boxes, labels, mask)
         opt.zero_grad(set_to_none=True)
         loss.backward()
