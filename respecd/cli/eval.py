@@ -37,6 +37,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sim: RGB size WxH of the ablation, contributions and deletion test (default 640x360)")
     parser.add_argument("--method", choices=("ablation", "gradient"), default=None,
                         help="contribution method (default: the profile's, ablation)")
+    parser.add_argument("--attribution-threshold", type=float, default=None,
+                        help="confidence a detection needs to be attributed (default: the daemon's, 0.25)")
     parser.add_argument("--scale", type=float, default=0.5,
                         help="folder data: image scale (default 0.5: LLVIP's 1280x1024 -> 640x512)")
     parser.add_argument("--split", choices=("auto", "all", "train", "val"), default="auto",
@@ -65,7 +67,7 @@ def main(args: argparse.Namespace) -> int:
     import torch
 
     from respecd.lab.detector import report as report_mod
-    from respecd.lab.detector.evaluate import evaluate_samples, evaluate_sim
+    from respecd.lab.detector.evaluate import OPERATING_THRESHOLD, evaluate_samples, evaluate_sim
     from respecd.perception.config import PerceptionConfig
 
     torch.set_num_threads(args.threads)
@@ -74,12 +76,14 @@ def main(args: argparse.Namespace) -> int:
         pcfg = pcfg.model_copy(update={"attribution_method": args.method})
     detector = _detector(args.weights, pcfg)
     summary = None
+    threshold = args.attribution_threshold if args.attribution_threshold is not None else OPERATING_THRESHOLD
     if args.data == "sim":
-        result = evaluate_sim(detector, args.frames, _resolution(args.rgb), progress=not args.quiet)
+        result = evaluate_sim(detector, args.frames, _resolution(args.rgb), progress=not args.quiet,
+                              attribution_threshold=threshold)
         title = f"Simulated rover, held-out scenes ({args.weights})"
     else:
         samples, title = _folder_samples(args, detector.config)
-        result = evaluate_samples(detector, samples, progress=not args.quiet)
+        result = evaluate_samples(detector, samples, progress=not args.quiet, attribution_threshold=threshold)
         summary = folder_summary(result)
         if args.card:
             _record_in_card(args, summary, len(samples), title)

@@ -68,8 +68,8 @@ def sample_input(sample: Sample, aux: tuple[str, ...], removed: tuple[str, ...])
 class Evaluation:
     """Accumulates per-instant results; ``report()`` gives the JSON body of ``eval.json``."""
 
-    def __init__(self, detector: FusionDetector) -> None:
-        self.detector = detector
+    def __init__(self, detector: FusionDetector, attribution_threshold: float = OPERATING_THRESHOLD) -> None:
+        self.detector, self.attribution_threshold = detector, attribution_threshold
         self.aux = detector.model.spec.aux_modalities
         self.attributor = Attributor(detector.model, detector.config.attribution_method)
         self.by_resolution: dict[str, dict[str, list[ImageResult]]] = defaultdict(lambda: defaultdict(list))
@@ -112,7 +112,7 @@ class Evaluation:
         self.attribution_size = f"{w}x{h}"
         cfg = self.detector.config
         x, presence = sample_input(sample, self.aux, ())
-        result = self.attributor(x, presence, OPERATING_THRESHOLD, cfg.iou_threshold, cfg.max_detections,
+        result = self.attributor(x, presence, self.attribution_threshold, cfg.iou_threshold, cfg.max_detections,
                                  cfg.attribution_targets)
         k = 0 if result.ranking is None else len(result.ranking)
         targets, confidences = result.detections[0][:k].numpy(), result.detections[1][:k].numpy()
@@ -155,11 +155,12 @@ class Evaluation:
             "contributions": {c: _mean_dict(rows) for c, rows in self.contributions.items()},
             "faithfulness": {c: float(np.mean(v)) for c, v in self.faithful.items() if v},
             "frames": {c: len(by["none"]) for c, by in self.ablation.items()},
-            "detections": {c: {n: detection_count(images) for n, images in by.items()} for c, by in self.ablation.items()},
+            "detections": {c: {n: detection_count(images) for n, images in by.items()}
+                           for c, by in self.ablation.items()},
             "attributed": dict(self.attributed_frames),
             "attributed_detections": {c: len(v) for c, v in self.faithful.items()},
             "attribution": {"method": cfg.attribution_method, "rgb": self.attribution_size,
-                            "score_threshold": OPERATING_THRESHOLD, "targets": cfg.attribution_targets},
+                            "score_threshold": self.attribution_threshold, "targets": cfg.attribution_targets},
         }
 
 
@@ -202,11 +203,12 @@ def condition_order(report: dict) -> list[str]:
     return known + sorted(c for c in report["map"] if c not in known)
 
 
-def evaluate_samples(detector: FusionDetector, samples, progress: bool = False) -> dict:
+def evaluate_samples(detector: FusionDetector, samples, progress: bool = False,
+                     attribution_threshold: float = OPERATING_THRESHOLD) -> dict:
     """A dataset (anything with len and [i]): ablation, contributions and the deletion test at its size."""
     from respecd.lab.detector.data import progress as progress_bar
 
-    evaluation = Evaluation(detector)
+    evaluation = Evaluation(detector, attribution_threshold)
     for i in progress_bar(range(len(samples)), progress, desc="eval"):
         sample = samples[i]
         evaluation.add_attributed(sample, ["all", sample.meta.get("scenario", "data")])
@@ -214,7 +216,8 @@ def evaluate_samples(detector: FusionDetector, samples, progress: bool = False) 
 
 
 def evaluate_sim(detector: FusionDetector, per_scenario: int, attribution_size: tuple[int, int] = (640, 360),
-                 seed: int = EVAL_SEED, progress: bool = False) -> dict:
+                 seed: int = EVAL_SEED, progress: bool = False,
+                 attribution_threshold: float = OPERATING_THRESHOLD) -> dict:
     """Held-out simulated instants, ``per_scenario`` of each scenario, at every RGB resolution."""
     from respecd.lab.detector.data import progress as progress_bar
     from respecd.lab.detector.simdata import RESOLUTIONS, SimFrames, condition_of
@@ -224,7 +227,7 @@ def evaluate_sim(detector: FusionDetector, per_scenario: int, attribution_size: 
     instants = [(run * n + s, fraction) for run in range(max(1, per_scenario // 2)) for s in range(n)
                 for fraction in (0.3, 0.7)]  # two instants per scenario run
     sizes: list[tuple[int, int]] = sorted({*RESOLUTIONS, (attribution_size[0], attribution_size[1])})
-    evaluation = Evaluation(detector)
+    evaluation = Evaluation(detector, attribution_threshold)
     for segment, fraction in progress_bar(instants, progress, desc="eval", unit="instant"):
         t = frames.time_in(segment, fraction)
         for size in sizes:

@@ -148,7 +148,7 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
     keep_frozen_eval(model)
     ema = EMA(model)
     opt = _optimizer(model, cfg)
-    steps = cfg.steps_per_epoch or max(1, len(pool) // cfg.batch)  # type: ignore[arg-type]  # sim: steps set
+    steps = cfg.steps_per_epoch or max(1, len(pool) // cfg.batch)
     total = steps * cfg.epochs
     resume_path = cfg.out.with_name(cfg.out.name + ".resume")  # not *.pt: never packaged as weights
     first_epoch, curve = _maybe_resume(resume_path, cfg, model, ema, opt)
