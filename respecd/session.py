@@ -196,6 +196,7 @@ class Session:
                                 self.applied, self.tables)
         stage.on_decision.extend(self.hooks.decision)
         if self.perception is not None:
+            self.perception.attribute_on_request()  # once per decision window, never more
             stage.loop.on_window.append(self.perception.request_attribution)
         return stage
 

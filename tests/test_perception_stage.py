@@ -73,6 +73,25 @@ async def test_stage_runs_detector_in_one_worker_thread_at_the_cadence() -> None
     assert not any(t.name.startswith("perception") for t in threading.enumerate())
 
 
+async def test_with_a_controller_attribution_runs_only_when_asked() -> None:
+    """The controller asks once per decision window: no attribution the cadence would add."""
+    config = PerceptionConfig(model=TINY, score_threshold=0.0, max_detections=5, attribution_every_s=0.5)
+    detector = RecordingDetector(FusionNet(TINY), config)
+    stage = PerceptionStage(config, profile=None, clock=ManualClock(), detector=detector)
+    stage.attribute_on_request()
+    bundles: DropOldestQueue[Bundle] = DropOldestQueue(4)
+    percepts = DropOldestQueue(8)
+    task = asyncio.create_task(stage.run(bundles, percepts), name="perception")
+    for seq, t in enumerate((0.0, 0.6, 1.2, 1.8, 2.4, 3.0)):
+        if seq == 3:
+            stage.request_attribution()
+        bundles.put(_bundle(t, seq))
+        await asyncio.wait_for(percepts.get(), timeout=30)
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+    assert [a for _, a in detector.calls] == [True, False, False, True, False, False]
+
+
 async def test_stage_with_bad_weights_fails_to_load(tmp_path) -> None:
     from respecd.errors import ConfigError
 

@@ -3,8 +3,10 @@
 Torch work never runs on the event loop: one dedicated single-thread executor does every
 ``infer`` (so the detector's state, e.g. the decaying scene score, is only ever touched by
 that thread), and the checkpoint is loaded in a worker thread by ``load`` (the loop keeps
-answering signals meanwhile). Attribution runs at the profile's cadence, or at the next
-bundle after ``request_attribution()`` (the controller asks once per decision window).
+answering signals meanwhile). Attribution (a few forward passes) runs only where its result
+is used: with a controller, on the first bundle and then once per decision window, at the
+next bundle after the controller's ``request_attribution()`` and never more often; without
+one (the scene score is then for the status line and the log), at the profile's cadence.
 
 A lockstep replay gives the stage a ``LatencyModel``: the clock stands still while the
 detector runs, so the stage stays busy for the modelled latency on the log's clock before
@@ -72,6 +74,7 @@ class PerceptionStage:
         self._contributions: dict[str, float] | None = None
         self._executor: ThreadPoolExecutor | None = None
         self._attribution_requested = False
+        self._on_request_only = False
         self._last_attribution_t: float | None = None
         self._inputs = frozenset({"rgb", *config.model.aux_modalities})
         self._last_inputs: dict[str, tuple[int, float]] = {}
@@ -80,6 +83,11 @@ class PerceptionStage:
     def request_attribution(self) -> None:
         """Attribute the next bundle, whatever the cadence says."""
         self._attribution_requested = True
+
+    def attribute_on_request(self) -> None:
+        """A controller will ask for attributions (once per window): attribute only then, and
+        the first bundle, so the first decision has contributions; the cadence no longer applies."""
+        self._on_request_only = True
 
     async def load(self) -> None:
         """Load the checkpoint in a worker thread of its own (ConfigError when it is bad); once.
@@ -160,11 +168,10 @@ class PerceptionStage:
         return True
 
     def _attribution_due(self, t: float) -> bool:
-        due = (
-            self._attribution_requested
-            or self._last_attribution_t is None
-            or t - self._last_attribution_t >= self.config.attribution_every_s
+        cadence = not self._on_request_only and (
+            self._last_attribution_t is not None and t - self._last_attribution_t >= self.config.attribution_every_s
         )
+        due = self._attribution_requested or self._last_attribution_t is None or cadence
         if due:
             self._attribution_requested = False
             self._last_attribution_t = t
