@@ -65,12 +65,16 @@ class DriverContext:
     """What a driver may need beyond its own profile entry.
 
     ``simulation`` is the profile's ``simulation:`` section (simulated drivers build their
-    shared, seeded world from it); ``replay`` is an opened session log for replay drivers.
+    shared, seeded world from it); ``replay`` is an opened session log for replay drivers,
+    and ``decode_ahead`` tells them that every frame's pixels will be read (no detector: the
+    controller's features read each frame), so their read-ahead threads decode them too
+    (else a frame is decoded when something first reads its pixels).
     """
 
     seed: int = 0
     simulation: Any = None
     replay: Any = None
+    decode_ahead: bool = False
 
 
 @dataclass
@@ -86,12 +90,12 @@ class DriverHealth:
     meter: RateMeter = field(default_factory=RateMeter)
     resolution: Resolution | None = None  # measured: the last image frame's (width, height)
 
-    def frame(self, t: float, image: Any = None) -> None:
-        """Count a frame at ``t``; ``image`` (H, W[, C]) also records the delivered size."""
+    def frame(self, t: float, shape: tuple[int, ...] | None = None) -> None:
+        """Count a frame at ``t``; an image's ``shape`` (H, W[, C]) also records the delivered size."""
         self.frames += 1
         self.meter.tick(t)
-        if image is not None and image.ndim >= 2:
-            self.resolution = (int(image.shape[1]), int(image.shape[0]))
+        if shape is not None and len(shape) >= 2:
+            self.resolution = (int(shape[1]), int(shape[0]))
 
     def error(self, err: BaseException | str) -> None:
         self.errors += 1

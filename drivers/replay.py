@@ -101,8 +101,8 @@ class ReplayDriver(_Driver):
             raise DriverUnavailableError(f"{self.name}: the log has no sensor {self.source!r}")
         self._stopped.clear()
         if self._frames is None:  # a restart resumes where the log was, it does not rewind
-            self._frames = log_.frames(self.source, log_.shared_demux())
-        self._prefetch = _Prefetch(self._frames, self.name)
+            self._frames = log_.frames(self.source, log_.shared_demux(), lazy=True)
+        self._prefetch = _Prefetch(self._frames, self.name, decode=self.context.decode_ahead)
 
     async def stop(self) -> None:
         self._stopped.set()
@@ -118,9 +118,10 @@ class ReplayDriver(_Driver):
         prefetch = self._prefetch
         assert prefetch is not None, "start() first"
         while not self._stopped.is_set():
-            # usually decoded already by the prefetch thread; waiting for it is executor work,
-            # so a lockstep replay does not move the clock while a frame is still on its way
-            logged = await asyncio.to_thread(prefetch.get)
+            # usually read already by the prefetch thread: taken at once, no thread hop; else
+            # waiting for it is executor work, so a lockstep replay does not move the clock
+            # while a frame is still on its way
+            logged = prefetch.get() if prefetch.ready() else await asyncio.to_thread(prefetch.get)
             if logged is None:
                 break
             await self.clock.sleep_until(logged.t)
@@ -160,17 +161,20 @@ class ReplayDriver(_Driver):
 
 
 class _Prefetch:
-    """Reads and decodes a sensor's next frames in a background thread, a few ahead.
+    """Reads a sensor's next frames in a background thread, a few ahead (JPEGs stay encoded
+    until their pixels are read: ``respecd.record.lazy``).
 
-    Decoding depends on the log alone, so it may run ahead of the clock; only handing a
-    frame over is synchronised with the pipeline (``get`` from a worker thread).
+    Reading depends on the log alone, so it may run ahead of the clock; only handing a frame
+    over is synchronised with the pipeline (``get``: at once when ``ready``, else from a
+    worker thread).
     """
 
-    DEPTH = 8  # frames decoded ahead: bounded memory (8 x 1280x720x3 = 22 MB at most)
+    DEPTH = 16  # frames read ahead: bounded memory (JPEGs stay encoded; 16 raw 640x480 depth frames = 10 MB)
     POLL_S = 0.1  # how often a blocked put/get checks for close()
 
-    def __init__(self, frames: Iterator[Frame], name: str) -> None:
+    def __init__(self, frames: Iterator[Frame], name: str, decode: bool = False) -> None:
         self._frames = frames
+        self._decode = decode  # decode each frame here, off the loop (DriverContext.decode_ahead)
         self._queue: queue.Queue[Frame | BaseException | None] = queue.Queue(self.DEPTH)
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"replay-{name}", daemon=True)
@@ -180,6 +184,8 @@ class _Prefetch:
         item: Frame | BaseException | None = None
         try:
             for item in self._frames:
+                if self._decode:
+                    item.data  # noqa: B018 - a LazyFrame decodes on first read
                 if not self._offer(item):
                     return
             item = None  # end of log
@@ -203,10 +209,18 @@ class _Prefetch:
                 item = self._queue.get(timeout=self.POLL_S)
             except queue.Empty:
                 continue
-            if isinstance(item, BaseException):
-                raise DriverIOError(f"replay log unreadable: {item}") from item
-            return item
+            return self._unwrap(item)
         return None
+
+    def ready(self) -> bool:
+        """``get`` would return at once (one consumer: a queued item stays there for it)."""
+        return self._closed.is_set() or not self._queue.empty()
+
+    @staticmethod
+    def _unwrap(item: Frame | BaseException | None) -> Frame | None:
+        if isinstance(item, BaseException):
+            raise DriverIOError(f"replay log unreadable: {item}") from item
+        return item
 
     def close(self) -> None:
         self._closed.set()

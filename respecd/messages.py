@@ -48,6 +48,11 @@ class Frame:
     data: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
 
+    @property
+    def shape(self) -> tuple[int, ...]:
+        """The shape of ``data`` (a replay's ``LazyFrame`` knows it before decoding its pixels)."""
+        return tuple(self.data.shape)
+
 
 @dataclass(frozen=True, slots=True)
 class SyncStats:

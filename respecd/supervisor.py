@@ -109,7 +109,7 @@ def driver_runner(driver: Driver, sink: Callable[[Frame], None]) -> Callable[[],
             await driver.start()
             log.info("driver_started", sensor=driver.name, driver=driver.key)
             async for frame in driver.frames():
-                driver.health.frame(frame.t, frame.data if frame.modality in IMAGE_MODALITIES else None)
+                driver.health.frame(frame.t, frame.shape if frame.modality in IMAGE_MODALITIES else None)
                 sink(frame)
         except BaseException as err:
             if not isinstance(err, asyncio.CancelledError):

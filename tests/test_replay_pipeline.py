@@ -113,6 +113,33 @@ def test_speed_max_with_the_detector_is_deterministic(session_log: Path, tmp_pat
     assert a["decisions"] == b["decisions"] and len(a["decisions"]) >= 2
 
 
+def test_a_replay_decodes_only_the_rgb_frames_the_detector_runs_on(
+    session_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A frame superseded before the detector takes a bundle is never decoded."""
+    from respecd.errors import ConfigError
+    from respecd.perception.checkpoint import resolve
+    from respecd.record import legacy
+    from respecd.replay.run import replay
+
+    try:
+        resolve("builtin:sim-rover")
+    except ConfigError:
+        pytest.skip("no built-in detector checkpoint (run `make weights`)")
+    decoded: list[int] = []
+    real = legacy.decode_compressed
+    monkeypatch.setattr(legacy, "decode_compressed", lambda raw, fmt: decoded.append(len(raw)) or real(raw, fmt))
+    profile = yaml.safe_load((session_log.parent / "profile.yaml").read_text())
+    profile["perception"] = {"enabled": True}
+    config = tmp_path / "with-detector.yaml"
+    config.write_text(yaml.safe_dump(profile))
+    entry = replay(session_log, config=config, policy="static", duration=2.0)["policies"]["static"]
+    served, percepts = entry["compute"]["frames"]["rgb"], entry["compute"]["percepts"]
+    assert served > percepts >= 3  # the detector (paced by its modelled latency) skips frames
+    # the detector's frames, plus the first frame (the replay reads the logged size from it)
+    assert len(decoded) <= percepts + 1 < served + 1
+
+
 def test_static_and_heuristic_give_a_comparison_table(
     session_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:

@@ -42,6 +42,7 @@ class FeatureExtractor:
     def __init__(self) -> None:
         self._sampler = BlockSampler()
         self._motion = {"rgb": MotionMeter(), "thermal": MotionMeter()}
+        self._last_blocks: dict[str, tuple[tuple[int, tuple[int, ...]], np.ndarray]] = {}
 
     def sample(self, percept: Percept, received_t: float | None = None) -> Sample:
         """Features of one percept, stamped ``received_t`` (when the controller got it; the
@@ -68,15 +69,28 @@ class FeatureExtractor:
         luminance, scores = None, []
         rgb = frames.get("rgb")
         if rgb is not None:
-            blocks = self._sampler.blocks(rgb.data)
+            blocks = self._blocks(rgb)
             luminance = scene_light(float(blocks.mean()), rgb.meta)
-            scores.append(self._motion["rgb"].update(rgb.seq, rgb.data.shape, blocks))
+            scores.append(self._motion["rgb"].update(rgb.seq, rgb.shape, blocks))
         thermal = frames.get("thermal")
         if thermal is not None:
-            blocks = self._sampler.blocks(thermal.data)
-            scores.append(self._motion["thermal"].update(thermal.seq, thermal.data.shape, blocks, spread(blocks)))
+            blocks = self._blocks(thermal)
+            motion = self._motion["thermal"]
+            if not motion.seen(thermal.seq, thermal.shape):
+                scores.append(motion.update(thermal.seq, thermal.shape, blocks, spread(blocks)))
         known = [s for s in scores if s is not None]
         return luminance, (max(known) if known else None)
+
+    def _blocks(self, frame: Frame) -> np.ndarray:
+        """Block means of the frame; a frame already sampled (a slow camera sits in several
+        bundles) is not read again."""
+        key = (frame.seq, frame.shape)
+        last = self._last_blocks.get(frame.modality)
+        if last is not None and last[0] == key:
+            return last[1]
+        blocks = self._sampler.blocks(frame.data)
+        self._last_blocks[frame.modality] = (key, blocks)
+        return blocks
 
 
 def scene_light(luminance: float, meta: dict) -> float:

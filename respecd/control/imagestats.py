@@ -73,6 +73,10 @@ class MotionMeter:
         self._last: np.ndarray | None = None
         self._last_key: tuple[int, tuple[int, ...]] | None = None
 
+    def seen(self, seq: int, shape: tuple[int, ...]) -> bool:
+        """``update`` would return None for this frame: it is the one scored last."""
+        return self._last_key is not None and seq == self._last_key[0]
+
     def update(self, seq: int, shape: tuple[int, ...], blocks: np.ndarray, scale: float = 1.0) -> float | None:
         """Score against the previous frame; None for the first frame, a repeat of the same
         frame (a slow camera sits in several bundles) or a resolution change."""

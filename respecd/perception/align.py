@@ -70,6 +70,9 @@ class Aligner:
         presence = np.zeros(len(self.aux), dtype=np.float32)
         for i, name in enumerate(self.aux):
             frame = frames.get(name)
+            # an upscaled replay frame (record.lazy) holds no more than its source, and it is
+            # resampled into the RGB view anyway: resample the source, once
+            frame = getattr(frame, "upscale_of", None) or frame
             if frame is None or frame.data.size == 0 and name != "radar":
                 continue
             plane = self._plane(name, frame, k_rgb, w, h)

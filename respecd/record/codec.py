@@ -22,6 +22,7 @@ import foxglove.messages as fox
 import numpy as np
 
 from respecd.messages import Frame, Modality
+from respecd.record import lazy as lazy_frames
 from respecd.record import legacy
 from respecd.record.topics import colormap_topic, meta_topic, raw_topic, sensor_topic
 
@@ -216,14 +217,20 @@ def decode_message(schema: LoggedSchema, payload: bytes) -> Any:
 
 
 def decode_frame(schema: LoggedSchema, payload: bytes, fallback_modality: Modality, log_ns: int = 0,
-                 meta: dict[str, Any] | None = None) -> Frame:
+                 meta: dict[str, Any] | None = None, lazy: bool = False) -> Frame:
     """The ``Frame`` a logged sensor message stands for; ``meta`` is its FrameMeta (new
-    format). First-format logs (JSON, inline ``respecd`` object) decode as they always did."""
+    format). First-format logs (JSON, inline ``respecd`` object) decode as they always did.
+    ``lazy``: a JPEG becomes a ``LazyFrame``, decoded when its pixels are first read."""
     if schema.message_encoding == "json" and meta is None:
         return legacy.decode_frame(schema.name, payload, fallback_modality, log_ns)
     meta = meta or {}
     modality = meta.get("modality", fallback_modality)
     msg = decode_message(schema, payload)
+    t = float(meta.get("t", log_ns / 1e9))
+    if lazy and schema.name == "foxglove.CompressedImage" and (shape := lazy_frames.jpeg_shape(msg.data)) is not None:
+        jpeg, fmt = msg.data, msg.format
+        return lazy_frames.LazyFrame(modality, t, int(meta.get("seq", 0)), meta=dict(meta.get("meta") or {}),
+                                     decode=lambda: legacy.decode_compressed(jpeg, fmt), shape=shape)
     if schema.name == "foxglove.PointCloud":
         data = legacy.points_array(msg.data, msg.point_stride, {f.name: f.offset for f in msg.fields})
     elif schema.name == "respecd.Imu":
@@ -234,5 +241,4 @@ def decode_frame(schema: LoggedSchema, payload: bytes, fallback_modality: Modali
         data = legacy.decode_raw(msg.data, msg.encoding, msg.width, msg.height, msg.step)
     else:
         raise ValueError(f"unknown sensor schema {schema.name!r}")
-    t = float(meta.get("t", log_ns / 1e9))
     return Frame(modality=modality, t=t, seq=int(meta.get("seq", 0)), data=data, meta=dict(meta.get("meta") or {}))

@@ -112,15 +112,16 @@ class SessionLog:
         wanted = set(topics) if topics is not None else None
         yield from _iter_messages(self.path, wanted, self.note_damage, self.channel_ids)
 
-    def frames(self, sensor: str, demux: Demux | None = None) -> Iterator[Frame]:
+    def frames(self, sensor: str, demux: Demux | None = None, lazy: bool = False) -> Iterator[Frame]:
         """The sensor's logged frames in order; radar frames get their raw UART bytes back.
 
         With ``demux`` (shared by every sensor of a replay) the file is read once in all,
-        instead of once per sensor.
+        instead of once per sensor. ``lazy``: JPEG frames are decoded when first read
+        (``respecd.record.lazy``).
         """
         topics = [sensor_topic(sensor), raw_topic(sensor), meta_topic(sensor)]
         messages = demux.messages_for(sensor) if demux is not None else self.messages(topics)
-        yield from _pair_frames(messages, sensor, self.sensors.get(sensor, "rgb"))
+        yield from _pair_frames(messages, sensor, self.sensors.get(sensor, "rgb"), lazy)
 
     def side_data(self, rgb_sensor: str | None) -> tuple[list[tuple[float, Any]], list[dict[str, Any]]]:
         """One pass for what a replay needs besides frames: the RGB frames' ground truth as
@@ -154,7 +155,7 @@ class SessionLog:
 
 
 def _pair_frames(
-    messages: Iterable[tuple[str, LoggedSchema, int, bytes]], sensor: str, modality: Modality
+    messages: Iterable[tuple[str, LoggedSchema, int, bytes]], sensor: str, modality: Modality, lazy: bool = False
 ) -> Iterator[Frame]:
     """Decode one sensor's frame messages. Its FrameMeta (format 2) comes just before the
     frame with the same log time; a raw-bytes message right after it (same seq) joins it."""
@@ -168,7 +169,7 @@ def _pair_frames(
             if pending is not None:
                 yield pending
             frame_meta = stashed[1] if stashed is not None and stashed[0] == ns else None
-            pending, stashed = codec.decode_frame(schema, data, modality, ns, frame_meta), None
+            pending, stashed = codec.decode_frame(schema, data, modality, ns, frame_meta, lazy), None
         elif pending is not None:
             seq, raw = legacy.raw_bytes(data)
             if seq == pending.seq:

@@ -118,7 +118,9 @@ class BagLog:
             self._demux = Demux(self.messages(owner), owner)
         return self._demux
 
-    def frames(self, sensor: str, demux: Demux | None = None) -> Iterator[Frame]:
+    def frames(self, sensor: str, demux: Demux | None = None, lazy: bool = False) -> Iterator[Frame]:
+        """A topic's messages as Frames (``lazy`` is accepted for the SessionLog interface; a
+        bag's images are converted as they are read)."""
         topic = self.topic_map[sensor]
         messages = demux.messages_for(sensor) if demux is not None else self.messages([topic])
         for seq, (_, (reader, connection), ns, raw) in enumerate(messages):

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from respecd.messages import Frame, RadarMode, Resolution, SensorConfig
+from respecd.record.lazy import derive
 
 GRID_EPS = 1e-9  # logged times on the grid itself (k / r) count as its first frame
 IMAGES = ("rgb", "thermal", "depth")
@@ -51,10 +52,12 @@ def delivered_index(times: Sequence[float], rate_hz: float, t: float) -> int | N
 
 
 def resize(frame: Frame, resolution: Resolution) -> Frame:
-    """The image at ``resolution``; ground truth in ``meta["gt"]`` is scaled with it."""
+    """The image at ``resolution``; ground truth in ``meta["gt"]`` is scaled with it. The
+    pixels are resized when first read (``LazyFrame``): a frame nobody looks at costs nothing."""
     import cv2
 
-    height, width = frame.data.shape[:2]
+    shape = frame.shape
+    height, width = shape[:2]
     if (width, height) == tuple(resolution):
         return frame
     shrink = resolution[0] * resolution[1] < width * height
@@ -62,11 +65,12 @@ def resize(frame: Frame, resolution: Resolution) -> Frame:
         interpolation = cv2.INTER_NEAREST
     else:
         interpolation = cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
-    data = cv2.resize(frame.data, tuple(resolution), interpolation=interpolation)
     meta = dict(frame.meta)
     if meta.get("gt") is not None:
         meta["gt"] = scale_boxes(meta["gt"], resolution[0] / width, resolution[1] / height)
-    return replace(frame, data=data, meta=meta)
+    size = (int(resolution[0]), int(resolution[1]))
+    return derive(frame, lambda data: cv2.resize(data, size, interpolation=interpolation),
+                  (size[1], size[0], *shape[2:]), meta, upscale=not shrink)
 
 
 def scale_boxes(gt: Any, sx: float, sy: float) -> Any:
@@ -117,6 +121,6 @@ def transform(frame: Frame, applied: SensorConfig, max_range_m: Mapping[str, flo
     if frame.modality == "radar":
         data = radar_points(frame.data, applied.mode, applied.rate_hz, max_range_m, max_velocity_m_s)
         return replace(frame, data=data)
-    if frame.modality in IMAGES and applied.resolution is not None and frame.data.ndim >= 2:
+    if frame.modality in IMAGES and applied.resolution is not None and len(frame.shape) >= 2:
         return resize(frame, applied.resolution)
     return frame

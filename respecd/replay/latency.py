@@ -53,8 +53,8 @@ class LatencyModel:
     def latency(self, percept: Percept) -> float:
         frames = percept.bundle.frames if percept.bundle is not None else {}
         rgb = frames.get("rgb")
-        if rgb is not None and rgb.data.ndim >= 2:
-            self.last_pixels = int(rgb.data.shape[0] * rgb.data.shape[1])
+        if rgb is not None and len(rgb.shape) >= 2:
+            self.last_pixels = int(rgb.shape[0] * rgb.shape[1])
         pixels = self.last_pixels
         rate = self.s_per_pixel_attributed if percept.contributions is not None else self.s_per_pixel
         return pixels * rate

@@ -116,7 +116,7 @@ def build_reference(truth: list[tuple[float, Any]], percepts: list[dict[str, Any
 
 
 def image_pixels(frames: Iterable[Frame]) -> int:
-    return int(sum(f.data.shape[0] * f.data.shape[1] for f in frames if f.data.ndim >= 2))
+    return int(sum(f.shape[0] * f.shape[1] for f in frames if len(f.shape) >= 2))
 
 
 class Collector:
@@ -198,10 +198,10 @@ class Collector:
 
     def _scale(self, rgb: Frame | None) -> np.ndarray:
         """Factor from the bundle's RGB pixels to the native (logged) RGB pixels."""
-        if rgb is None or self.native_rgb is None or rgb.data.ndim < 2:
+        if rgb is None or self.native_rgb is None or len(rgb.shape) < 2:
             return np.ones(4)
-        sx = self.native_rgb[0] / rgb.data.shape[1]
-        sy = self.native_rgb[1] / rgb.data.shape[0]
+        sx = self.native_rgb[0] / rgb.shape[1]
+        sy = self.native_rgb[1] / rgb.shape[0]
         return np.array([sx, sy, sx, sy])
 
 

@@ -171,21 +171,24 @@ class _Replay:
         if lockstep and self.profile.perception.enabled:
             model = LatencyModel.from_percepts(self.logged_percepts)
             self.latency_source = f"{model.source}: {model.s_per_pixel * 1e9:.1f} ns/px"
-        session = Session(self.profile, clock, DriverContext(seed=self.seed, replay=self.session),
+        # without a detector the controller's features read every frame: decode them ahead, off the loop
+        decode_ahead = not self.profile.perception.enabled and self.profile.controller.enabled
+        context = DriverContext(seed=self.seed, replay=self.session, decode_ahead=decode_ahead)
+        session = Session(self.profile, clock, context,
                           tables=self.tables, observers=[self.collector], latency_model=model,
                           status_sink=lambda fields, line: log.debug("status", line=line))
         session.hooks.inference.append(self.collector.measured)
         if not lockstep:
             session.hooks.up.insert(0, clock.restart)  # log time starts with the pipeline, not before it
-        marks: list[tuple[float, float]] = []  # the replay loop alone: weight loading excluded
-        session.hooks.up.append(lambda: marks.append((time.perf_counter(), time.process_time())))
+        marks: list[tuple[float, float, float]] = []  # the replay loop alone: weight loading excluded
+        session.hooks.up.append(lambda: marks.append((time.perf_counter(), time.process_time(), time.thread_time())))
         try:
             await self._drive(session, clock, lockstep, stop)
         finally:
             if signals is not None:
                 signals.unbind()
-        started, cpu0 = marks[0] if marks else (time.perf_counter(), time.process_time())
-        wall, cpu = time.perf_counter() - started, time.process_time() - cpu0
+        started, cpu0, loop0 = marks[0] if marks else (time.perf_counter(), time.process_time(), time.thread_time())
+        wall, cpu, loop_cpu = time.perf_counter() - started, time.process_time() - cpu0, time.thread_time() - loop0
         end = min(max(clock.now(), self.t0), self.t0 + self.duration)
         if stop.is_set():
             log.info("replay.stopped", replayed_s=round(end - self.t0, 3), of_s=round(self.duration, 3))
@@ -194,6 +197,7 @@ class _Replay:
         entry = rpt.summarize(self.collector, self.t0, end, power, describe)
         entry["wall_s"] = round(wall, 3)  # the replay loop alone: imports and weight loading excluded
         entry["cpu_s"] = round(cpu, 3)  # process CPU time (all threads) over the same span
+        entry["loop_cpu_s"] = round(loop_cpu, 3)  # the event loop's thread alone
         entry["latency_model"] = self.latency_source
         entry["stopped_early"] = stop.is_set()
         return entry
