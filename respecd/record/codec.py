@@ -41,7 +41,7 @@ class ImageFormats:
     """The recording choices that matter to the encoder (a slice of RecordingConfig + profile)."""
 
     rgb: str = "jpeg"
-    jpeg_quality: int = 90
+    jpeg_quality: int = 80
     wide: str = "raw"  # 16-bit thermal/depth: "png" or "raw"
     thermal_colormap: str = "inferno"  # or "none": no display image beside the raw thermal one
     thermal_range_k: tuple[float, float] = (273.0, 313.0)  # kelvin spread over the colormap
@@ -71,7 +71,7 @@ def timestamp(log_ns: int) -> fox.Timestamp:
 
 
 def dumps(obj: Any) -> bytes:
-    return json.dumps(obj, separators=(",", ":"), default=_json_default).encode()
+    return _ENCODER.encode(obj).encode()
 
 
 def _json_default(value: Any) -> Any:
@@ -82,6 +82,9 @@ def _json_default(value: Any) -> Any:
     if hasattr(value, "value"):  # enums
         return value.value
     return str(value)
+
+
+_ENCODER = json.JSONEncoder(separators=(",", ":"), default=_json_default)  # one, not one per message
 
 
 # -- encode -------------------------------------------------------------------------------

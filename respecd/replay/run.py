@@ -51,12 +51,13 @@ def run_replay(args: argparse.Namespace, signals: Any = None) -> int:
 def replay(log_path: str | Path, *, config: str | Path | None = None, policy: str | None = None, speed: str = "max",
            seed: int = 0, duration: float | None = None, report: str | Path | None = None,
            state_dir: str | Path | None = None, save_table: str | Path | None = None,
-           signals: Any = None, topics: str | None = None) -> dict[str, Any]:
+           signals: Any = None, topics: str | None = None, observe: Any = None) -> dict[str, Any]:
     """Replay ``log_path`` under ``policy``; the report (``{"log", "policies"}``), also merged
     into the JSON at ``report`` (with a PNG timeline) when given. ``config``: a profile file
     to replay with instead of the one recorded in the log. ``signals``: a ``StopSignals``
     whose SIGTERM/SIGINT end the replay early (the report then covers what was replayed).
-    ``topics``: for a ROS bag, which topic is which sensor (``rgb=/cam/image_raw,imu=...``)."""
+    ``topics``: for a ROS bag, which topic is which sensor (``rgb=/cam/image_raw,imu=...``).
+    ``observe``: called with the replay's ``Session`` before it starts (benchmarks attach hooks)."""
     if duration is not None and not duration > 0:
         raise InputError(f"--duration: expected a positive number of seconds, got {duration}")
     session = open_source(log_path, topics)
@@ -72,7 +73,7 @@ def replay(log_path: str | Path, *, config: str | Path | None = None, policy: st
     t0 = min(f.t for f in firsts.values())
     span = session.duration_s if duration is None else min(duration, session.duration_s)
     tables = _tables(profile, state_dir, save_table)
-    entry = _Replay(profile, session, speed, t0, span, seed, tables).run(signals)
+    entry = _Replay(profile, session, speed, t0, span, seed, tables, observe).run(signals)
     entry.update(policy=profile.controller.policy, seed=seed, speed=speed, truncated=session.truncated)
     return _emit(report, session, entry)
 
@@ -134,8 +135,9 @@ class _Replay:
     """One replay run: a session around replay drivers, its clock driven to the end."""
 
     def __init__(self, profile: Any, session: SessionLog, speed: str, t0: float, duration: float, seed: int,
-                 tables: Any) -> None:
+                 tables: Any, observe: Any = None) -> None:
         self.profile = profile
+        self.observe = observe
         self.session = session
         self.speed = speed
         self.t0 = t0
@@ -178,6 +180,8 @@ class _Replay:
                           tables=self.tables, observers=[self.collector], latency_model=model,
                           status_sink=lambda fields, line: log.debug("status", line=line))
         session.hooks.inference.append(self.collector.measured)
+        if self.observe is not None:
+            self.observe(session)
         if not lockstep:
             session.hooks.up.insert(0, clock.restart)  # log time starts with the pipeline, not before it
         marks: list[tuple[float, float, float]] = []  # the replay loop alone: weight loading excluded

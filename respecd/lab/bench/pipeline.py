@@ -1,9 +1,14 @@
-"""Pipeline: the simulated rover at 30 Hz on every sensor — sync jitter, loop lag, drops, CPU."""
+"""Pipeline: the simulated rover at 30 Hz on every sensor — sync jitter, loop lag, drops, CPU.
+
+With ``--with-perception --with-controller`` the detector and the learning controller run
+too (``--policy`` picks another): it explores, updates its Q-table and reconfigures the
+sensors, as the daemon does."""
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import os
 import time
 from typing import Any
 
@@ -19,9 +24,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--with-perception", action="store_true", help="also run the detector (default: core pipeline only)"
     )
     parser.add_argument("--with-controller", action="store_true", help="also run the controller")
+    parser.add_argument("--policy", default="learn", choices=("learn", "static", "heuristic", "exploit"),
+                        help="the controller's policy with --with-controller (default learn: it explores, "
+                        "updates its table and reconfigures the sensors)")
 
 
-def bench_profile(source: str, with_perception: bool, with_controller: bool) -> Any:
+def bench_profile(source: str, with_perception: bool, with_controller: bool, policy: str = "learn") -> Any:
     from respecd.config import load_profile
 
     profile = load_profile(source)
@@ -30,7 +38,7 @@ def bench_profile(source: str, with_perception: bool, with_controller: bool) -> 
         update={
             "sensors": sensors,
             "perception": profile.perception.model_copy(update={"enabled": with_perception}),
-            "controller": profile.controller.model_copy(update={"enabled": with_controller, "policy": "static"}),
+            "controller": profile.controller.model_copy(update={"enabled": with_controller, "policy": policy}),
         }
     )
 
@@ -89,7 +97,10 @@ async def _measure(profile: Any, seconds: float) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    profile = bench_profile(args.config, args.with_perception, args.with_controller)
+    policy = getattr(args, "policy", "learn")
+    profile = bench_profile(args.config, args.with_perception, args.with_controller, policy)
     figures = asyncio.run(_measure(profile, args.seconds))
-    figures["config"] = {"profile": args.config, "perception": args.with_perception, "controller": args.with_controller}
+    figures["config"] = {"profile": args.config, "perception": args.with_perception,
+                         "controller": policy if args.with_controller else False}
+    figures["load_average_1min"] = round(os.getloadavg()[0], 2)
     return figures

@@ -3,14 +3,18 @@
 * Recording overhead: the recorder taps real simulated frames (pre-rendered, cycled) on a
   real-time 30 Hz schedule; overhead = CPU time of the writer thread (encode, compress,
   write) plus the taps on the loop, over wall time, in % of one core. Measured for RGB
-  alone (640x360 JPEG at 30 Hz) and for the whole simulated rover at its profile rates
-  (zstd chunks, and lz4 which trades file size for CPU).
+  alone (640x360 JPEG at 30 Hz) and for the whole simulated rover at its profile rates, with
+  the daemon's recording defaults (lz4 chunks, JPEG quality 80), and once with zstd chunks
+  (smaller files, more CPU).
 * Replay throughput: a simulated session is recorded in lockstep (fast, no detector), then
   replayed with ``--speed max`` through the full pipeline with the detector, RGB held at
-  the chosen resolution (policy static, one RGB setting), and once more without the
-  detector (the replay machinery alone). Speed = log seconds / wall seconds of the replay
-  loop (imports, profile and weight loading are reported apart). The log has no percepts,
-  so perception is paced by the default latency model (the detector's measured cost here).
+  the chosen resolution (policy static, one RGB setting) (``replay_speed_x``); the same
+  inferences (the frames each one ran on, attributed or not) again through the detector
+  alone, one after another (``detector_only_speed_x``: the most the replay could reach);
+  and the replay once more without the detector (``pipeline_only_speed_x``: the replay
+  machinery alone). Speed = log seconds / wall seconds of the replay loop (imports, profile
+  and weight loading are ``startup_s``). The log has no percepts, so perception is paced by
+  the default latency model (the detector's measured cost here).
 """
 
 from __future__ import annotations
@@ -43,20 +47,29 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         size = (width, height)
         rgb_only = asyncio.run(_recording_overhead(work / "rgb-only.mcap", size, args, rgb_only=True))
         rover = asyncio.run(_recording_overhead(work / "rover.mcap", size, args, rgb_only=False))
-        rover_lz4 = asyncio.run(_recording_overhead(work / "rover-lz4.mcap", size, args, False, "lz4"))
+        rover_zstd = asyncio.run(_recording_overhead(work / "rover-zstd.mcap", size, args, False, "zstd"))
         profile, weights_note = _profile(args, (width, height), work)
         log = _record_simulated(profile, work / "session.mcap", args)
-        replay = _replay(profile, log, work, args)
+        inferences: list[tuple[dict[str, Any], bool]] = []
+        replay = _replay(profile, log, work, args, observe=_capture(profile, inferences))
+        alone = detector_only(profile, inferences, replay["log_s"])
+        inferences.clear()
         no_detector = profile.model_copy(
             update={"perception": profile.perception.model_copy(update={"enabled": False})}
         )
         replay_core = _replay(no_detector, log, work / "core", args)
     return {
+        "replay_speed_x": replay["x_realtime"],
+        "detector_only_speed_x": alone["x_realtime"],
+        "pipeline_only_speed_x": replay_core["x_realtime"],
+        "startup_s": replay["startup_s"],
+        "replay_over_detector_only": round(replay["x_realtime"] / alone["x_realtime"], 3),
         "recording_rgb_30hz": rgb_only,
         "recording_sim_rover": rover,
-        "recording_sim_rover_lz4": rover_lz4,
+        "recording_sim_rover_zstd": rover_zstd,
         "replay": {**replay, "weights": weights_note, "rgb": f"{width}x{height}",
                    "torch_threads": profile.perception.torch_threads},
+        "detector_only": alone,
         "replay_without_detector": replay_core,
     }
 
@@ -83,7 +96,7 @@ def _frames(size: tuple[int, int], seed: int) -> dict[str, list[Any]]:
 
 
 async def _recording_overhead(
-    path: Path, size: tuple[int, int], args: argparse.Namespace, rgb_only: bool, compression: str = "zstd"
+    path: Path, size: tuple[int, int], args: argparse.Namespace, rgb_only: bool, compression: str | None = None
 ) -> dict:
     from respecd.clock import MonotonicClock
     from respecd.config import load_profile
@@ -94,7 +107,9 @@ async def _recording_overhead(
     rates = {"rgb": 30.0} if rgb_only else {"rgb": 30.0, "thermal": 9.0, "radar": 10.0, "depth": 15.0, "imu": 30.0}
     frames = _frames(size, args.seed)
     clock = MonotonicClock()
-    config = RecordingConfig(path=str(path), compression=compression)
+    config = RecordingConfig(path=str(path))  # the daemon's defaults (lz4 chunks, JPEG quality 80)
+    if compression is not None:
+        config = config.model_copy(update={"compression": compression})
     # the sim-rover's profile: its calibrations and extrinsics are recorded too, as in the daemon
     recorder = Recorder(config, load_profile("builtin:sim-rover"), clock)
     recorder.start()
@@ -119,7 +134,8 @@ async def _recording_overhead(
     cpu = recorder.cpu_s + tap_cpu
     return {
         "streams_hz": rates,
-        "compression": compression,
+        "compression": config.compression,
+        "jpeg_quality": config.jpeg_quality,
         "wall_s": round(wall, 2),
         "frames": sum(counts.values()),
         "writer_cpu_s": round(recorder.cpu_s, 3),
@@ -183,7 +199,7 @@ def _record_simulated(profile: Any, path: Path, args: argparse.Namespace) -> Pat
     return path
 
 
-def _replay(profile: Any, log: Path, work: Path, args: argparse.Namespace) -> dict[str, Any]:
+def _replay(profile: Any, log: Path, work: Path, args: argparse.Namespace, observe: Any = None) -> dict[str, Any]:
     import json
 
     import yaml
@@ -195,7 +211,7 @@ def _replay(profile: Any, log: Path, work: Path, args: argparse.Namespace) -> di
     config.write_text(yaml.safe_dump(profile.model_dump(mode="json")))
     report = work / "replay-report.json"
     start = time.perf_counter()
-    replay(log, config=config, policy="static", speed="max", seed=args.seed, report=report)
+    replay(log, config=config, policy="static", speed="max", seed=args.seed, report=report, observe=observe)
     total = time.perf_counter() - start
     entry = json.loads(report.read_text())["policies"]["static"]
     return {
@@ -203,11 +219,48 @@ def _replay(profile: Any, log: Path, work: Path, args: argparse.Namespace) -> di
         "loop_wall_s": entry["wall_s"],
         "x_realtime": round(entry["replayed_s"] / entry["wall_s"], 2),
         "loop_cpu_s": entry["cpu_s"],
+        "loop_thread_cpu_s": entry.get("loop_cpu_s"),
         "x_realtime_per_cpu_s": round(entry["replayed_s"] / entry["cpu_s"], 2),
         "load_average_1min": round(os.getloadavg()[0], 2),
         "latency_model": entry["latency_model"],
-        "total_wall_s_with_startup": round(total, 2),
+        "startup_s": round(total - entry["wall_s"], 2),  # imports, weights, log pre-scan, report
         "percepts": entry["compute"]["percepts"],
+        "attributions": entry["compute"]["attributions"],
         "inference_ms_per_log_s": entry["compute"]["inference_ms_per_s"],
         "mean_latency_ms": entry["compute"]["mean_latency_ms"],
+    }
+
+
+def _capture(profile: Any, into: list[tuple[dict[str, Any], bool]]) -> Any:
+    """A replay observer keeping each inference's detector inputs and whether it attributed."""
+    inputs = {"rgb", *profile.perception.model.aux_modalities}
+
+    def observe(session: Any) -> None:
+        def keep(percept: Any) -> None:
+            frames = percept.bundle.frames if percept.bundle is not None else {}
+            into.append(({m: f for m, f in frames.items() if m in inputs}, percept.contributions is not None))
+
+        session.hooks.inference.append(keep)
+
+    return observe
+
+
+def detector_only(profile: Any, inferences: list[tuple[dict[str, Any], bool]], log_s: float) -> dict[str, Any]:
+    """The replay's inferences again, through the detector alone: same frames, same
+    attributions, same checkpoint and thread count, one after another on this thread."""
+    from respecd.perception.detector import FusionDetector
+    from respecd.perception.stage import calibration_from_profile
+
+    detector = FusionDetector.load(profile.perception, calibration_from_profile(profile))
+    wall0, cpu0 = time.perf_counter(), time.process_time()
+    for frames, attribute in inferences:
+        detector.infer(frames, attribute)
+    wall, cpu = time.perf_counter() - wall0, time.process_time() - cpu0
+    return {
+        "inferences": len(inferences),
+        "attributions": sum(attribute for _, attribute in inferences),
+        "wall_s": round(wall, 3),
+        "cpu_s": round(cpu, 3),
+        "x_realtime": round(log_s / wall, 2) if wall > 0 else None,
+        "load_average_1min": round(os.getloadavg()[0], 2),
     }
