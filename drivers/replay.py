@@ -31,6 +31,7 @@ from respecd.drivers.base import Capabilities, DriverConfigBase, clamp_request
 from respecd.drivers.base import Driver as _Driver
 from respecd.errors import DriverIOError, DriverUnavailableError
 from respecd.messages import Frame, RadarMode, Resolution, SensorConfig
+from respecd.priority import lower_thread_priority
 from respecd.replay import counterfactual
 
 log = structlog.get_logger(__name__)
@@ -181,6 +182,7 @@ class _Prefetch:
         self._thread.start()
 
     def _run(self) -> None:
+        lower_thread_priority()
         item: Frame | BaseException | None = None
         try:
             for item in self._frames:

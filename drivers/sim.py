@@ -3,8 +3,8 @@
 Frames come on the grid k / rate of the injected clock (no drift, independent of start
 time) and are stamped with their grid time, so a run on a ``ManualClock`` is deterministic.
 Each frame's noise comes from ``default_rng([seed, modality, seq])``. Rendering runs inline when it is measured to be
-cheap (< 1 ms CPU) and in the driver's own worker thread otherwise, so the event loop never
-waits on a 1280x720 render or on a scenario's background being built.
+tiny (< 0.2 ms CPU: the IMU) and in the driver's own worker thread otherwise, so the event
+loop never waits on a render or on a scenario's background being built.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from respecd.clock import Clock
 from respecd.drivers.base import Capabilities, Driver, DriverConfigBase, DriverContext, clamp_request
 from respecd.errors import DriverError
 from respecd.messages import MODALITIES, Frame, SensorConfig
+from respecd.priority import lower_thread_priority
 from respecd.sim.camera import ground_truth
 from respecd.sim.radar_model import radar_figures
 from respecd.sim.render import (
@@ -41,7 +42,10 @@ from respecd.sim.world import World, make_world
 
 log = structlog.get_logger(__name__)
 
-INLINE_BUDGET_S = 0.001  # renders above this go to the worker thread (a hand-off costs the loop ~0.1 ms)
+# renders above this go to the worker thread (a hand-off costs the loop ~0.1 ms). Not more: an
+# inline render's numpy calls each let another thread take the GIL, and the loop then waits
+# up to the switch interval to get it back, a few times per render (bench pipeline's stalls)
+INLINE_BUDGET_S = 0.0002
 _COST_SMOOTHING = 0.2  # EWMA weight of the newest render time
 
 # The FLIR One Pro's Lepton: 160x120 at about 8-9 frames per second (SENSORS.md section 3);
@@ -96,7 +100,8 @@ class SimDriver(Driver):
         if self._world is not None and not self._stopped.is_set():
             return
         self._world = make_world(self.context.simulation, self.context.seed)
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"sim-{self.name}")
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"sim-{self.name}",
+                                            initializer=lower_thread_priority)
         self._stopped = asyncio.Event()
         log.info("sim_start", sensor=self.name, modality=self.modality, seed=self._world.seed)
 

@@ -136,8 +136,9 @@ def test_a_replay_decodes_only_the_rgb_frames_the_detector_runs_on(
     entry = replay(session_log, config=config, policy="static", duration=2.0)["policies"]["static"]
     served, percepts = entry["compute"]["frames"]["rgb"], entry["compute"]["percepts"]
     assert served > percepts >= 3  # the detector (paced by its modelled latency) skips frames
-    # the detector's frames, plus the first frame (the replay reads the logged size from it)
-    assert len(decoded) <= percepts + 1 < served + 1
+    # the detector's frames, plus the first frame (the replay reads the logged size from it) and
+    # the frame of an inference still running when the replay ends (its percept is never counted)
+    assert len(decoded) <= percepts + 2 < served + 2
 
 
 def test_static_and_heuristic_give_a_comparison_table(

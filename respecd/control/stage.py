@@ -1,6 +1,7 @@
 """The controller stage: the daemon's side of the control loop.
 
-It turns percepts into the loop's samples (per-percept features, on the loop thread), gives
+It turns percepts into the loop's samples (per-percept features, in a worker thread on a wall
+clock, on the loop in a lockstep replay), gives
 the loop the drivers to apply decisions to (each with a timeout, concurrently; a failing
 driver is logged and retried at the next decision) and the system probe (worker thread),
 and keeps the Q-table on disk: loaded when ``run`` first starts, saved every ``save_every``
@@ -20,7 +21,7 @@ from typing import Any
 import structlog
 
 from respecd.applied import AppliedConfigs
-from respecd.clock import Clock
+from respecd.clock import Clock, MonotonicClock
 from respecd.control.config import ControllerConfig
 from respecd.control.controller import Controller
 from respecd.control.features import FeatureExtractor
@@ -116,6 +117,7 @@ class ControllerStage:
         self.loop.on_decision.append(self._log_decision)
         self.loop.after_decision = self._maybe_save
         self._features = FeatureExtractor()
+        self._features_off_loop = isinstance(clock, MonotonicClock)  # a wall clock (live, --speed 1|2)
         self._prepared = False
         self._saved_updates = 0
 
@@ -189,10 +191,15 @@ class ControllerStage:
     async def _consume(self, percepts: DropOldestQueue[Percept]) -> None:
         while True:
             percept = await percepts.get()
-            # stamped on arrival: with a slow detector percept.t lags the clock by its latency.
-            # Features stay on the loop (~0.3 ms for 720p): a thread hop would let a lockstep
-            # replay's decision see or miss this percept depending on thread timing.
-            self.loop.add(self._features.sample(percept, self.clock.now()))
+            # stamped on arrival: with a slow detector percept.t lags the clock by its latency
+            received = self.clock.now()
+            if self._features_off_loop:
+                # ~0.3 ms of numpy for 720p, each call a chance for another thread to take the
+                # GIL while the loop waits: in a worker (one at a time: the motion state is ordered)
+                sample = await asyncio.to_thread(self._features.sample, percept, received)
+            else:  # a lockstep clock: nothing waits on the loop, and a hop would only slow a replay
+                sample = self._features.sample(percept, received)
+            self.loop.add(sample)
 
     def _log_decision(self, decision: Decision) -> None:
         log.info(

@@ -8,11 +8,14 @@ is used: with a controller, on the first bundle and then once per decision windo
 next bundle after the controller's ``request_attribution()`` and never more often; without
 one (the scene score is then for the status line and the log), at the profile's cadence.
 
-A lockstep replay gives the stage a ``LatencyModel``: the clock stands still while the
-detector runs, so the stage stays busy for the modelled latency on the log's clock before
-it takes the next bundle (a slow detector skips bundles as it did on the robot), and the
-percept carries the modelled latency downstream; ``on_inference`` observers see each
-percept as the detector produced it (measured latency).
+A lockstep replay gives the stage a ``LatencyModel``: the detector takes the modelled
+latency on the log's clock, as on the robot. The percept is delivered that much later, and
+the stage takes its next bundle only then (a slow detector skips bundles as it did on the
+robot); the percept carries the modelled latency downstream. Meanwhile the log's clock goes
+on (sensors, synchronizer, controller run beside the detector, on the other core); only if
+the detector is not done when its modelled latency is up does the clock wait for it. Which
+bundle is taken and when a percept arrives depend on the log alone. ``on_inference``
+observers see each percept as the detector produced it (measured latency).
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ import structlog
 from respecd.clock import Clock
 from respecd.messages import Bundle, Percept
 from respecd.perception.config import PerceptionConfig
+from respecd.priority import lower_thread_priority
 from respecd.queues import DropOldestQueue
 
 log = structlog.get_logger(__name__)
@@ -38,7 +42,7 @@ SHUTDOWN_TIMEOUT_S = 5.0  # longer than one forward+attribution at 1280x720 on a
 class LatencyModel(Protocol):
     """Perception latency as the robot's detector would have had it (``replay.latency``)."""
 
-    def apply(self, percept: Percept) -> Percept: ...
+    def predict(self, bundle: Bundle, attributed: bool) -> float: ...
 
 
 def calibration_from_profile(profile: Any) -> dict[str, Any]:
@@ -107,7 +111,8 @@ class PerceptionStage:
         """Forever: bundle -> detector (worker thread) -> Percept(bundle=...) on ``percepts``."""
         await self.load()
         loop = asyncio.get_running_loop()
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="perception")
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="perception",
+                                            initializer=lower_thread_priority)
         try:
             while True:
                 if self.latency_model is not None:
@@ -119,7 +124,12 @@ class PerceptionStage:
                     continue
                 attribute = self._attribution_due(bundle.t)
                 frames = dict(bundle.frames)
-                percept = await loop.run_in_executor(self._executor, self._detector.infer, frames, attribute)
+                if self.latency_model is None:
+                    percept = await loop.run_in_executor(self._executor, self._detector.infer, frames, attribute)
+                    modelled = None
+                else:
+                    modelled = self.latency_model.predict(bundle, attribute)
+                    percept = await self._infer_beside_the_clock(frames, attribute, taken + modelled)
                 percept = dataclasses.replace(percept, t=bundle.t, bundle=bundle)
                 self._contributions = percept.contributions or self._contributions
                 shown = percept if percept.contributions is not None else None
@@ -127,12 +137,27 @@ class PerceptionStage:
                 self.processed += 1
                 for hook in self.on_inference:
                     hook(percept)
-                if self.latency_model is not None:
-                    percept = self.latency_model.apply(percept)
-                    self._busy_until = taken + percept.latency
+                if modelled is not None:
+                    percept = dataclasses.replace(percept, latency=modelled)
+                    self._busy_until = taken + modelled
                 percepts.put(percept)
         finally:
             await self._shutdown()
+
+    async def _infer_beside_the_clock(self, frames: dict[Any, Any], attribute: bool, due: float) -> Percept:
+        """The detector in its thread while the log's clock runs on to ``due`` (when the
+        robot's detector would have delivered); then its result, the clock standing still
+        until it is there. The job is handed to the executor directly, so a ``LockstepLoop``
+        does not count it (which would hold the clock); waiting for its result is counted."""
+        assert self._executor is not None
+        job = self._executor.submit(self._detector.infer, frames, attribute)
+        try:
+            await self.clock.sleep_until(due)
+            if job.done():
+                return job.result()
+            return await asyncio.get_running_loop().run_in_executor(None, job.result)
+        finally:
+            job.cancel()  # a stop while it runs: it finishes in its thread, nobody waits for it
 
     async def _shutdown(self) -> None:
         """Drop a pending infer, let a running one finish in its thread without blocking the loop."""

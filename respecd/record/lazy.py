@@ -34,6 +34,10 @@ class LazyFrame(Frame):
     """A ``Frame`` whose ``data`` is produced by ``decode()`` the first time it is read."""
 
     __slots__ = ("_decode", "_lock", "_shape", "upscale_of")
+    _decode: Callable[[], np.ndarray] | None
+    _lock: threading.Lock
+    _shape: tuple[int, ...]
+    upscale_of: Frame | None
 
     def __init__(self, modality: Modality, t: float, seq: int, data: np.ndarray | None = None,
                  meta: dict[str, Any] | None = None, *, decode: Callable[[], np.ndarray] | None = None,
@@ -47,7 +51,7 @@ class LazyFrame(Frame):
         if data is not None:
             _DATA.__set__(self, data)
 
-    @property  # type: ignore[override]
+    @property
     def data(self) -> np.ndarray:
         try:
             return _DATA.__get__(self, Frame)
@@ -57,6 +61,7 @@ class LazyFrame(Frame):
             try:
                 return _DATA.__get__(self, Frame)
             except AttributeError:
+                assert self._decode is not None
                 data = self._decode()
                 _DATA.__set__(self, data)
                 object.__setattr__(self, "_decode", None)  # the encoded bytes can go
@@ -64,7 +69,7 @@ class LazyFrame(Frame):
 
     @property
     def shape(self) -> tuple[int, ...]:
-        return self._shape  # type: ignore[no-any-return]
+        return self._shape
 
     @property
     def decoded(self) -> bool:
@@ -103,7 +108,8 @@ def jpeg_shape(data: bytes | memoryview) -> tuple[int, ...] | None:
             i += 2
             continue
         if marker in _SOF and i + 10 <= n:
-            height, width, components = int.from_bytes(buf[i + 5:i + 7], "big"), int.from_bytes(buf[i + 7:i + 9], "big"), buf[i + 9]
+            height, width = int.from_bytes(buf[i + 5:i + 7], "big"), int.from_bytes(buf[i + 7:i + 9], "big")
+            components = buf[i + 9]
             if height == 0 or width == 0 or components not in (1, 3):
                 return None
             return (height, width) if components == 1 else (height, width, 3)

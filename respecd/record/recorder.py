@@ -21,6 +21,7 @@ import structlog
 
 from respecd.clock import Clock
 from respecd.messages import Bundle, Decision, Frame, Percept, SensorConfig
+from respecd.priority import lower_thread_priority
 from respecd.record import codec, events
 from respecd.record.codec import Message
 from respecd.record.config import RecordingConfig
@@ -198,6 +199,7 @@ class Recorder:
 
     # -- worker thread -------------------------------------------------------------------
     def _run(self) -> None:
+        lower_thread_priority()  # the loop keeps time, this only has to keep up
         cpu0 = time.thread_time()
         try:
             while True:

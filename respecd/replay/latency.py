@@ -15,7 +15,7 @@ import statistics
 from collections.abc import Iterable
 from typing import Any
 
-from respecd.messages import Percept
+from respecd.messages import Bundle, Percept
 
 # Used only when the log recorded no percepts: the fusion detector's forward + NMS at 640x360
 # took 94 ms of CPU time (one torch thread) on the 2-core x86-64 development machine,
@@ -50,14 +50,15 @@ class LatencyModel:
         heavy = statistics.median(attributed) if attributed else base * ATTRIBUTION_FACTOR
         return cls(base, heavy, "log")
 
-    def latency(self, percept: Percept) -> float:
-        frames = percept.bundle.frames if percept.bundle is not None else {}
-        rgb = frames.get("rgb")
+    def predict(self, bundle: Bundle | None, attributed: bool) -> float:
+        """The modelled latency of running the detector on ``bundle`` (known before it runs)."""
+        rgb = bundle.frames.get("rgb") if bundle is not None else None
         if rgb is not None and len(rgb.shape) >= 2:
             self.last_pixels = int(rgb.shape[0] * rgb.shape[1])
-        pixels = self.last_pixels
-        rate = self.s_per_pixel_attributed if percept.contributions is not None else self.s_per_pixel
-        return pixels * rate
+        return self.last_pixels * (self.s_per_pixel_attributed if attributed else self.s_per_pixel)
+
+    def latency(self, percept: Percept) -> float:
+        return self.predict(percept.bundle, percept.contributions is not None)
 
     def apply(self, percept: Percept) -> Percept:
         return dataclasses.replace(percept, latency=self.latency(percept))
