@@ -39,6 +39,7 @@ IMU_TYPE = "sensor_msgs/msg/Imu"
 _VELOCITY = ("v", "velocity", "doppler", "radial_velocity")
 _SNR = ("snr", "intensity", "power")
 _PC2_DTYPES = {1: "i1", 2: "u1", 3: "<i2", 4: "<u2", 5: "<i4", 6: "<u4", 7: "<f4", 8: "<f8"}
+_DESERIALIZE = threading.Lock()  # every replay driver reads its topic in a read-ahead thread of its own
 
 
 def is_bag(path: str | Path) -> bool:
@@ -124,7 +125,8 @@ class BagLog:
         topic = self.topic_map[sensor]
         messages = demux.messages_for(sensor) if demux is not None else self.messages([topic])
         for seq, (_, (reader, connection), ns, raw) in enumerate(messages):
-            msg = reader.deserialize(raw, connection.msgtype)
+            with _DESERIALIZE:  # rosbags builds its deserializers on first use: not thread-safe
+                msg = reader.deserialize(raw, connection.msgtype)
             data = to_array(msg, connection.msgtype, sensor)  # type: ignore[arg-type]
             yield Frame(modality=sensor, t=(ns - self.start_ns) / 1e9, seq=seq, data=data,  # type: ignore[arg-type]
                         meta={"topic": topic, "frame_id": msg.header.frame_id})
