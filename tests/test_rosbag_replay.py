@@ -86,6 +86,17 @@ def test_bag_frames_convert_to_respecd_conventions(tmp_path: Path, storage: Stor
     np.testing.assert_allclose(imu, [0.0, 0.0, 9.8, 0.1, 0.0, 0.0], rtol=1e-6)
 
 
+def test_frames_parked_in_the_shared_pass_decode_after_the_bag_is_closed(tmp_path: Path) -> None:
+    """Replay drivers share one pass over the bag; the sensor that reads to the end closes the
+    reader while another sensor's messages still wait in their queue to be converted."""
+    _write_bag(tmp_path / "bag", StoragePlugin.MCAP)
+    bag = open_bag(tmp_path / "bag", None)
+    demux = bag.shared_demux()
+    assert len(list(bag.frames("imu", demux))) == 100  # the whole bag read: the reader closed
+    radar = list(bag.frames("radar", demux))
+    assert len(radar) == 20 and radar[0].data.shape == (6, 5)
+
+
 @pytest.mark.slow
 def test_replay_of_a_rosbag2_with_a_topic_map_runs_the_pipeline(tmp_path: Path) -> None:
     _write_bag(tmp_path / "bag", StoragePlugin.MCAP)

@@ -104,14 +104,20 @@ class BagLog:
         return iter(())
 
     def messages(self, topics: Iterable[str]) -> Iterator[tuple[str, Any, int, bytes]]:
-        """(topic, connection, receive time ns, raw cdr/ros1 bytes) in bag order."""
+        """(topic, (deserialize, connection), receive time ns, raw cdr/ros1 bytes) in bag order.
+
+        ``deserialize`` is bound to the bag's typestore: a message parked in a ``Demux`` may
+        be decoded after the reader has closed, and a closed ``AnyReader`` has swapped its
+        typestore for an empty one (KeyError on the message type)."""
         from rosbags.highlevel import AnyReader
 
         wanted = set(topics)
         with AnyReader([_bag_root(self.path)]) as reader:
+            store = reader.typestore
+            deserialize = store.deserialize_cdr if reader.is2 else store.deserialize_ros1
             connections = [c for c in reader.connections if c.topic in wanted]
             for connection, ns, raw in reader.messages(connections=connections):
-                yield connection.topic, (reader, connection), ns, raw
+                yield connection.topic, (deserialize, connection), ns, raw
 
     def shared_demux(self) -> Demux:
         if self._demux is None:
@@ -124,9 +130,9 @@ class BagLog:
         bag's images are converted as they are read)."""
         topic = self.topic_map[sensor]
         messages = demux.messages_for(sensor) if demux is not None else self.messages([topic])
-        for seq, (_, (reader, connection), ns, raw) in enumerate(messages):
+        for seq, (_, (deserialize, connection), ns, raw) in enumerate(messages):
             with _DESERIALIZE:  # rosbags builds its deserializers on first use: not thread-safe
-                msg = reader.deserialize(raw, connection.msgtype)
+                msg = deserialize(raw, connection.msgtype)
             data = to_array(msg, connection.msgtype, sensor)  # type: ignore[arg-type]
             yield Frame(modality=sensor, t=(ns - self.start_ns) / 1e9, seq=seq, data=data,  # type: ignore[arg-type]
                         meta={"topic": topic, "frame_id": msg.header.frame_id})
