@@ -63,11 +63,32 @@ def test_fine_tune_from_darknet_weights(tiny_hituav: Path, shared_data: Path, tm
     assert "wrote" in capsys.readouterr().out
 
 
+def test_fine_tune_only_the_fusion_of_a_thermal_backbone_from_another_model(tiny_hituav: Path, shared_data: Path,
+                                                                             tmp_path: Path) -> None:
+    folder = shared_data.parent / "pretrained" / "yolo_fastest"
+    body, xl = folder / "yolo-fastest-1.1_body.weights", folder / "yolo-fastest-1.1-xl.weights"
+    out = tmp_path / "mixed.pt"
+    assert cli_main(["train", "--data", str(tiny_hituav), "--out", str(out), "--init", f"{body},{xl}",
+                     "--aux", "thermal", "--aux-scale", "0.5", "--freeze", "rgb,head,aux,fuse.*.rgb", "--epochs", "1",
+                     "--steps", "2", "--batch", "2", "--crop", "128x96", "--zoom", "1.5,3", "--scale", "0.5",
+                     "--lr", "0.01", "--threads", "1", "--quiet"]) == 0
+    model, _ = checkpoint.load(str(out))
+    assert (model.spec.backbone, model.spec.aux_backbone) == ("darknet:yolo-fastest-1.1_body",
+                                                               "darknet:yolo-fastest-1.1-xl")
+    assert model.spec.aux_scale == 0.5
+    start = from_darknet(model.spec, body, xl)
+    before, after = start.state_dict(), model.state_dict()
+    changed = {k for k in before if not torch.equal(before[k], after[k])}
+    assert changed and all(k.startswith("fuse.") and k.endswith(".aux.weight") for k in changed)
+
+
 def test_bad_fine_tune_arguments(tiny_hituav: Path, tmp_path: Path, capsys) -> None:
     out = str(tmp_path / "x.pt")
     assert cli_main(["train", "--data", str(tiny_hituav), "--out", out, "--init", "missing.weights"]) == 2
     assert "no such Darknet weights file" in capsys.readouterr().err
     assert cli_main(["train", "--data", str(tiny_hituav), "--out", out, "--freeze", "wings", "--steps", "1"]) == 2
     assert "the net has no part 'wings'" in capsys.readouterr().err
+    assert cli_main(["train", "--data", str(tiny_hituav), "--out", out, "--freeze", "fuse.*.x", "--steps", "1"]) == 2
+    assert "the net has no part 'fuse.*.x'" in capsys.readouterr().err
     assert cli_main(["train", "--data", str(tiny_hituav), "--out", out, "--crop", "100x64"]) == 2
     assert "multiples of 32" in capsys.readouterr().err

@@ -86,3 +86,42 @@ def test_spec_rover_profile_loads_the_shipped_real_checkpoint() -> None:
     assert profile.perception.weights == "builtin:rgbt"
     detector = FusionDetector.load(profile.perception.model_copy(update={"device": "cpu"}))
     assert isinstance(detector.model, DarknetFusionNet) and detector.channels == ("r", "g", "b", "thermal")
+
+
+XL = "yolo-fastest-1.1-xl"
+MIXED = ModelSpec(backbone=f"darknet:{NAME}", aux_backbone=f"darknet:{XL}", aux_scale=0.5, aux_modalities=("thermal",))
+
+
+def test_a_thermal_backbone_from_another_model_starts_silent(weights: Path, pair) -> None:
+    with pytest.raises(InputError, match="needs its own .weights file"):
+        from_darknet(MIXED, weights)
+    model = from_darknet(MIXED, weights, weights.with_name(f"{XL}.weights")).eval()
+    assert sum(p.numel() for p in model.aux.parameters()) > 2 * sum(p.numel() for p in model.rgb.parameters())
+    ref = darknet.load(weights.with_suffix(".cfg"), weights)
+    rgb, ir = pair
+    with torch.inference_mode():
+        both = model(torch.cat([rgb, ir], 1), torch.ones(1, 1))
+        for ours, pretrained in zip(both, ref(rgb), strict=True):  # its features are not the head's: W_aux = 0
+            torch.testing.assert_close(ours, pretrained, rtol=0, atol=1e-4)
+    with torch.no_grad():
+        for fuse in model.fuse:
+            fuse.aux.weight.normal_(0, 0.01)  # as if trained: thermal now moves the output
+        moved = model(torch.cat([rgb, ir], 1), torch.ones(1, 1))
+        blank = model(torch.cat([rgb, torch.zeros_like(ir)], 1), torch.zeros(1, 1))
+    assert any((a - b).abs().max() > 1e-3 for a, b in zip(moved, both, strict=True))
+    for ours, pretrained in zip(blank, ref(rgb), strict=True):  # thermal off still adds exactly nothing
+        torch.testing.assert_close(ours, pretrained, rtol=0, atol=1e-4)
+
+
+def test_a_checkpoint_with_one_joint_fusion_kernel_loads(weights: Path, pair) -> None:
+    """Checkpoints written before the fusion was split into its RGB and aux halves hold one (c, 2c) kernel."""
+    model = from_darknet(SPEC, weights).eval()
+    state = model.state_dict()
+    for i in range(len(model.fuse)):
+        state[f"fuse.{i}.weight"] = torch.cat([state.pop(f"fuse.{i}.rgb.weight"), state.pop(f"fuse.{i}.aux.weight")], 1)
+    fresh = DarknetFusionNet(SPEC).eval()
+    fresh.load_state_dict(state, strict=True)
+    x = torch.cat(pair, 1)
+    with torch.inference_mode():
+        for a, b in zip(model(x, torch.ones(1, 1)), fresh(x, torch.ones(1, 1)), strict=True):
+            assert torch.equal(a, b)

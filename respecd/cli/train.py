@@ -32,10 +32,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--eval-frames", type=int, default=10,
                         help="sim: held-out instants per scenario evaluated for the model card (0: skip; default 10)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT.resume if present")
-    parser.add_argument("--init", help="start from this checkpoint (path or builtin:NAME) or Darknet .weights file")
+    parser.add_argument("--init", help="start from this checkpoint (path or builtin:NAME) or Darknet .weights file "
+                        "(RGB.weights,AUX.weights: backbone 2 from another Darknet model)")
     parser.add_argument("--aux", default="thermal,radar",
                         help="non-RGB modalities of a new net, in order (default thermal,radar)")
-    parser.add_argument("--freeze", default="", help="comma-separated parts kept fixed, e.g. rgb,head,fuse")
+    parser.add_argument("--aux-scale", type=float, default=1.0,
+                        help="Darknet nets: backbone 2 sees the aux planes at this scale (default 1.0)")
+    parser.add_argument("--freeze", default="",
+                        help="comma-separated parts kept fixed, e.g. rgb,head,fuse or fuse.*.rgb")
     parser.add_argument("--patience", type=int, default=0,
                         help="folder data: stop after N epochs without a better validation mAP@0.5 (0: never)")
     parser.add_argument("--modality", choices=("auto", "rgb", "thermal"), default="auto",
@@ -75,9 +79,10 @@ def main(args: argparse.Namespace) -> int:
     )
     aux = tuple(m for m in args.aux.split(",") if m)
     try:
-        pcfg = PerceptionConfig(model={"aux_modalities": aux})
+        pcfg = PerceptionConfig(model={"aux_modalities": aux, "aux_scale": args.aux_scale})
     except ValueError as err:
-        raise InputError(f"--aux {args.aux}: expected modalities among thermal, radar, depth") from err
+        raise InputError(f"--aux {args.aux} --aux-scale {args.aux_scale}: expected modalities among thermal, radar, "
+                         "depth and a scale above 0.1, at most 1") from err
     summary = train(cfg, pcfg)
     train_input = "strips 320 wide, full frame height" if sim else list(cfg.augment.size)
     card = {"name": args.out.stem, "data": args.data, "input_sizes": {"train": train_input,

@@ -50,6 +50,21 @@ class ModelSpec(StrictModel):
         "Darknet cfg NAME shipped in respecd/perception/cfg/ (pretrained weights imported), fused at the inputs of "
         "its yolo head (widths, depths and reg_max below are then unused).",
     )
+    aux_backbone: str | None = Field(
+        None,
+        pattern=r"^darknet:[A-Za-z0-9_.-]+$",
+        description="Darknet backbone only: backbone 2 from another packaged cfg (e.g. a wider one on thermal) than "
+        "backbone 1 and the head; its features reach the head through the learned fusion convolutions. "
+        "None: the same cfg as 'backbone'.",
+    )
+    aux_scale: float = Field(
+        1.0,
+        gt=0.1,
+        le=1.0,
+        description="Darknet backbone only: backbone 2 sees the aligned aux planes resized by this factor (a "
+        "160x120 thermal camera upsampled into the RGB view holds no more detail at 0.5), and its features "
+        "are resized back to backbone 1's: a quarter of the cost at 0.5.",
+    )
     aux_modalities: tuple[AuxModality, ...] = Field(
         ("thermal", "radar"),
         description="Non-RGB channels fed to backbone 2, in order (depth optional as a sixth channel).",

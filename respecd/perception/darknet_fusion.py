@@ -1,29 +1,38 @@
-"""The fusion detector on a pretrained Darknet backbone (``ModelSpec.backbone = "darknet:NAME"``).
+"""The fusion detector on pretrained Darknet backbones (``ModelSpec.backbone = "darknet:NAME"``).
 
-The paper's shape with real-photo features: backbone 1 (RGB) and backbone 2 (thermal and
-the other aligned planes, plus one presence plane per modality) are both the backbone of
-the Darknet cfg ``NAME`` (layers up to the last residual block); at every feature map the
-head reads (for Yolo-Fastest: stride 16 and 32) the two are concatenated and mixed by a
-1x1 convolution (mid-level fusion), then one Darknet yolo head detects:
+The paper's shape with real-photo features: backbone 1 (RGB) is the backbone of the Darknet
+cfg ``NAME`` (layers up to its last residual block); backbone 2 (thermal and the other aligned
+planes, plus one presence plane per modality) is the backbone of the same cfg or of another
+one (``ModelSpec.aux_backbone``, e.g. a wider model on thermal), optionally run on the aux
+planes at a lower resolution (``ModelSpec.aux_scale``; its features are resized back). At
+every feature map the head reads (Yolo-Fastest: strides 16 and 32) the two are mixed by a
+1x1 convolution over their concatenation (mid-level fusion), then one Darknet yolo head
+detects:
 
-    fused = conv1x1([rgb, g * (aux - f0)]),   g = 1 if any aux modality is present, else 0
+    fused = W_rgb * rgb + W_aux * g * (aux - a0),   g = 1 if any aux modality is present, else 0
 
-``f0`` is backbone 1's feature map of a black image of the same size (computed once per
-input size while backbone 1 is frozen). ``from_darknet`` starts every part from a Darknet
-``.weights`` file: RGB backbone and head as trained, backbone 2 with the same kernels
-applied to thermal replicated to three channels (its first kernel summed over R, G, B;
-radar, depth and presence kernels zero), and each fusion convolution ``[I, I]`` without
-bias. So a sensor that is off adds nothing: with the aux sensors off the net is exactly the
-pretrained RGB detector; with RGB off (a black image, ``rgb = f0``) it is exactly backbone
-2 on the head; with both on, their evidence adds in the head's feature space.
+``a0`` is what the aux side gives for an input with nothing in it: backbone 1's features of
+a black image when both backbones share a cfg (so a black thermal image adds exactly nothing
+at import), else backbone 2's features of an all-zero input. It is computed once per input
+size while that backbone is frozen. ``from_darknet`` starts every part from Darknet
+``.weights`` files: RGB backbone and head as trained, backbone 2 with its pretrained kernels
+applied to thermal replicated to three channels (its first kernel summed over R, G, B; radar,
+depth and presence kernels zero), ``W_rgb = I`` and ``W_aux = I`` (same cfg) or ``0`` (another
+cfg: its features are not the head's, the fusion learns the mapping). So a sensor that is
+off adds nothing: with the aux sensors off the net is exactly the pretrained RGB detector;
+same cfg and RGB off (a black image, ``rgb = f0``), it is exactly backbone 2 on the head.
 """
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Callable, Iterator
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import torch
+import torch.nn.functional as F
 from torch import nn
 
 from respecd.errors import InputError
@@ -42,8 +51,28 @@ def cfg_text(backbone: str) -> tuple[str, str]:
     return resource.read_text(encoding="utf-8"), f"{name}.cfg"
 
 
+class Fuse(nn.Module):
+    """One fusion point: a 1x1 convolution over [rgb, aux], held as its two halves so that either can be
+    trained alone (``--freeze fuse.*.rgb``); the sum of the halves is the convolution of the concatenation."""
+
+    def __init__(self, c_rgb: int, c_aux: int) -> None:
+        super().__init__()
+        self.rgb = nn.Conv2d(c_rgb, c_rgb, 1, bias=False)
+        self.aux = nn.Conv2d(c_aux, c_rgb, 1, bias=False)
+
+    def forward(self, rgb: torch.Tensor, aux: torch.Tensor) -> torch.Tensor:
+        return self.rgb(rgb) + self.aux(aux)
+
+    def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
+        joint = state_dict.pop(prefix + "weight", None)  # checkpoints before the split: one (c, 2c) kernel
+        if joint is not None:
+            c = self.rgb.in_channels
+            state_dict[prefix + "rgb.weight"], state_dict[prefix + "aux.weight"] = joint[:, :c], joint[:, c:]
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+
 class DarknetFusionNet(nn.Module):
-    """RGB Darknet backbone + aux Darknet backbone -> concat + 1x1 at each head input -> Darknet head."""
+    """RGB Darknet backbone + aux Darknet backbone -> 1x1 fusion at each head input -> Darknet head."""
 
     def __init__(self, spec: ModelSpec) -> None:
         super().__init__()
@@ -52,14 +81,22 @@ class DarknetFusionNet(nn.Module):
         sections = darknet.with_classes(darknet.parse_cfg(text, source), len(spec.classes))
         layout = darknet.DarknetNet(sections, 3, source, keep=range(0))
         self.split, self.taps = layout.head_split()
-        n = len(layout.layers)
+        self.same_backbone = spec.aux_backbone in (None, spec.backbone)
+        aux_sections, aux_layout, aux_source = sections, layout, source
+        if not self.same_backbone:
+            aux_text, aux_source = cfg_text(str(spec.aux_backbone))
+            aux_sections = darknet.parse_cfg(aux_text, aux_source)
+            aux_layout = darknet.DarknetNet(aux_sections, 3, aux_source, keep=range(0))
+        self.aux_split, self.aux_taps = aux_layout.head_split()
+        if [layout.layers[t].stride for t in self.taps] != [aux_layout.layers[t].stride for t in self.aux_taps]:
+            raise InputError(f"aux_backbone {spec.aux_backbone}: its feature strides differ from {spec.backbone}'s")
         n_aux = len(spec.aux_modalities)
         self.rgb = darknet.DarknetNet(sections, 3, source, keep=range(self.split))
-        self.aux = darknet.DarknetNet(sections, 2 * n_aux, source, keep=range(self.split))
-        self.head = darknet.DarknetNet(sections, 3, source, keep=range(self.split, n))
-        widths = [layout.layers[t].channels for t in self.taps]
-        self.fuse = nn.ModuleList(nn.Conv2d(2 * c, c, 1, bias=False) for c in widths)
-        self._black: dict[tuple[int, int, str], dict[int, torch.Tensor]] = {}  # f0 per input size
+        self.aux = darknet.DarknetNet(aux_sections, 2 * n_aux, aux_source, keep=range(self.aux_split))
+        self.head = darknet.DarknetNet(sections, 3, source, keep=range(self.split, len(layout.layers)))
+        self.fuse = nn.ModuleList(Fuse(layout.layers[t].channels, aux_layout.layers[a].channels)
+                                  for t, a in zip(self.taps, self.aux_taps, strict=True))
+        self._empty: dict[tuple[str, int, int, str], dict[int, torch.Tensor]] = {}  # f0 and a0 per input size
         self.yolo_specs = self.head.yolo_specs
 
     def forward(self, x: torch.Tensor, presence: torch.Tensor | None = None) -> list[torch.Tensor]:
@@ -70,34 +107,74 @@ class DarknetFusionNet(nn.Module):
         b, _, h, w = x.shape
         if presence is None:
             presence = x.new_ones(b, x.shape[1] - 3)
-        planes = presence.to(x.dtype)[:, :, None, None].expand(b, presence.shape[1], h, w)
         rgb: dict[int, torch.Tensor] = {}
-        aux: dict[int, torch.Tensor] = {}
-        black = self.black_features(h, w, x)
-        if bool((x[:, :3] == 0).all()) and not self.rgb.training:  # RGB off in the whole batch: f0, no pass
-            rgb = {t: f.expand(b, -1, -1, -1) for t, f in black.items()}
+        if bool((x[:, :3] == 0).all()) and not self.rgb.training:
+            rgb = {t: f.expand(b, -1, -1, -1) for t, f in self.black_features(h, w, x).items()}  # RGB off: no pass
         else:
             self.rgb.run(x[:, :3], 0, self.split, rgb)
-        self.aux.run(torch.cat([x[:, 3:], planes], 1), 0, self.split, aux)
+        aux = self.aux_features(x[:, 3:], presence)
+        empty = self.empty_features(h, w, x)
         gate = (presence.amax(1) > 0).to(x.dtype)[:, None, None, None] if presence.shape[1] else x.new_zeros(b, 1, 1, 1)
-        store = {t: fuse(torch.cat([rgb[t], gate * (aux[t] - black[t])], 1))
-                 for t, fuse in zip(self.taps, self.fuse, strict=True)}
+        store: dict[int, torch.Tensor] = {}
+        for t, a, fuse in zip(self.taps, self.aux_taps, self.fuse, strict=True):
+            evidence = aux[a] - empty[a]
+            if evidence.shape[-2:] != rgb[t].shape[-2:]:
+                evidence = F.interpolate(evidence, size=rgb[t].shape[-2:], mode="bilinear", align_corners=False)
+            store[t] = fuse(rgb[t], gate * evidence)
         self.head.run(None, self.split, len(self.head.layers), store)
         return [store[i] for i in self.head.yolo_indices]
 
-    def black_features(self, h: int, w: int, like: torch.Tensor) -> dict[int, torch.Tensor]:
-        """Backbone 1's tap features of a black h x w image: cached while backbone 1 cannot change."""
-        frozen = not self.rgb.training and not any(p.requires_grad for p in self.rgb.parameters())
-        key = (h, w, str(like.device))
-        if frozen and key in self._black:
-            return self._black[key]
+    def aux_input(self, planes: torch.Tensor, presence: torch.Tensor) -> torch.Tensor:
+        """Backbone 2's input: the aux planes and one presence plane each, at ``aux_scale``."""
+        b, _, h, w = planes.shape
+        flags = presence.to(planes.dtype)[:, :, None, None].expand(b, presence.shape[1], h, w)
+        z = torch.cat([planes, flags], 1)
+        if self.spec.aux_scale != 1.0:
+            z = F.interpolate(z, size=self.aux_size(h, w), mode="bilinear", align_corners=False, antialias=True)
+        return z
+
+    def aux_size(self, h: int, w: int) -> tuple[int, int]:
+        """Backbone 2's input size for an h x w input."""
+        s = self.spec.aux_scale
+        return (h, w) if s == 1.0 else (max(1, round(h * s)), max(1, round(w * s)))
+
+    def aux_features(self, planes: torch.Tensor, presence: torch.Tensor) -> dict[int, torch.Tensor]:
         store: dict[int, torch.Tensor] = {}
-        with torch.no_grad():
+        self.aux.run(self.aux_input(planes, presence), 0, self.aux_split, store)
+        return store
+
+    def black_features(self, h: int, w: int, like: torch.Tensor) -> dict[int, torch.Tensor]:
+        """Backbone 1's tap features of a black h x w image (``f0``), cached while backbone 1 cannot change."""
+        def run() -> dict[int, torch.Tensor]:
+            store: dict[int, torch.Tensor] = {}
             self.rgb.run(like.new_zeros(1, 3, h, w), 0, self.split, store)
-        black = {t: store[t] for t in self.taps}
+            return {t: store[t] for t in self.taps}
+        return self._constant(("rgb", h, w, str(like.device)), self.rgb, run)
+
+    def empty_features(self, h: int, w: int, like: torch.Tensor) -> dict[int, torch.Tensor]:
+        """``a0`` at each aux tap for an h x w input (see module doc), at backbone 2's resolution."""
+        if self.same_backbone:
+            return self.black_features(*self.aux_size(h, w), like)
+
+        def run() -> dict[int, torch.Tensor]:
+            n = len(self.spec.aux_modalities)
+            store: dict[int, torch.Tensor] = {}
+            self.aux.run(self.aux_input(like.new_zeros(1, n, h, w), like.new_zeros(1, n)), 0, self.aux_split, store)
+            return {t: store[t] for t in self.aux_taps}
+        return self._constant(("aux", h, w, str(like.device)), self.aux, run)
+
+    def _constant(self, key: tuple[str, int, int, str], part: nn.Module, run: Callable[[], dict[int, torch.Tensor]]
+                  ) -> dict[int, torch.Tensor]:
+        """``run()`` without gradients in eval mode (a one-image batch has no statistics of its own); kept
+        while ``part`` is frozen and in eval mode."""
+        frozen = not part.training and not any(p.requires_grad for p in part.parameters())
+        if frozen and key in self._empty:
+            return self._empty[key]
+        with torch.no_grad(), _eval_mode(part):
+            value = run()
         if frozen:
-            self._black[key] = black
-        return black
+            self._empty[key] = value
+        return value
 
     def fold_batchnorm(self) -> None:
         """For inference (the detector does it): batch norms folded into their convolutions, ~25 % less CPU
@@ -105,10 +182,10 @@ class DarknetFusionNet(nn.Module):
         for module in self.modules():
             if isinstance(module, darknet.ConvLayer):
                 module.fold_batchnorm()
-        self._black.clear()
+        self._empty.clear()
 
     def train(self, mode: bool = True) -> DarknetFusionNet:
-        self._black.clear()  # backbone 1 may change
+        self._empty.clear()  # the backbones may change
         return super().train(mode)
 
     def decode(self, raw: list[torch.Tensor], input_hw: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor]:
@@ -119,28 +196,55 @@ class DarknetFusionNet(nn.Module):
         return boxes, rows[..., 4:5] * rows[..., 5:]
 
 
-def from_darknet(spec: ModelSpec, weights: Path) -> DarknetFusionNet:
-    """A DarknetFusionNet started from a Darknet .weights file for the spec's cfg (see module doc).
+@contextlib.contextmanager
+def _eval_mode(module: nn.Module) -> Iterator[None]:
+    """``module`` and all its parts in eval mode for the block; each part's own mode restored after."""
+    modes = [(m, m.training) for m in module.modules()]
+    module.eval()
+    try:
+        yield
+    finally:
+        for m, training in modes:
+            m.training = training
 
-    A model with other classes (COCO's 80) keeps the spec's classes, found by name in the
-    ``.names`` file beside the weights (``coco.names``, ``NAME.names``).
+
+def from_darknet(spec: ModelSpec, weights: Path, aux_weights: Path | None = None) -> DarknetFusionNet:
+    """A DarknetFusionNet started from Darknet .weights files for the spec's cfgs (see module doc).
+
+    ``weights`` fill backbone 1 and the head; ``aux_weights`` backbone 2 when the spec names
+    another ``aux_backbone`` (required then). A model with other classes (COCO's 80) keeps the
+    spec's classes, found by name in the ``.names`` file beside the weights (``coco.names``,
+    ``NAME.names``).
     """
     model = DarknetFusionNet(spec)
-    text, source = cfg_text(spec.backbone)
-    ref = darknet.DarknetNet(darknet.parse_cfg(text, source), 3, source)
-    darknet.load_weights(ref, weights)
-    pretrained = ref.state_dict()
-    if ref.yolo_specs[0].classes != len(spec.classes):
-        pretrained = _keep_classes(ref, pretrained, _class_ids(Path(weights), spec.classes, ref.yolo_specs[0].classes))
+    pretrained = _pretrained_state(spec.backbone, Path(weights), spec.classes)
     for part in (model.rgb, model.head):
         part.load_state_dict({k: v for k, v in pretrained.items() if k in part.state_dict()}, strict=True)
+    if not model.same_backbone:
+        if aux_weights is None:
+            raise InputError(f"aux_backbone {spec.aux_backbone}: needs its own .weights file")
+        pretrained = _pretrained_state(str(spec.aux_backbone), Path(aux_weights), None)
     _init_aux(model, pretrained)
     with torch.no_grad():
         for fuse in model.fuse:
-            assert isinstance(fuse, nn.Conv2d)
-            eye = torch.eye(fuse.out_channels)[:, :, None, None]
-            fuse.weight.copy_(torch.cat([eye, eye], 1))
+            assert isinstance(fuse, Fuse)
+            fuse.rgb.weight.copy_(torch.eye(fuse.rgb.out_channels)[:, :, None, None])
+            if model.same_backbone:
+                fuse.aux.weight.copy_(torch.eye(fuse.aux.out_channels)[:, :, None, None])
+            else:
+                fuse.aux.weight.zero_()
     return model
+
+
+def _pretrained_state(backbone: str, weights: Path, classes: tuple[str, ...] | None) -> dict[str, torch.Tensor]:
+    """The cfg's net filled from ``weights``; with ``classes``, only their rows of the yolo convolutions."""
+    text, source = cfg_text(backbone)
+    ref = darknet.DarknetNet(darknet.parse_cfg(text, source), 3, source)
+    darknet.load_weights(ref, weights)
+    state = ref.state_dict()
+    if classes is not None and ref.yolo_specs[0].classes != len(classes):
+        state = _keep_classes(ref, state, _class_ids(weights, classes, ref.yolo_specs[0].classes))
+    return state
 
 
 def _class_ids(weights: Path, classes: tuple[str, ...], total: int) -> list[int]:
@@ -151,8 +255,8 @@ def _class_ids(weights: Path, classes: tuple[str, ...], total: int) -> list[int]
             names = [n.strip().lower() for n in names_file.read_text(encoding="utf-8").splitlines() if n.strip()]
             if len(names) == total:
                 found = [next((names.index(a) for a in aliases.get(c, (c,)) if a in names), None) for c in classes]
-                if None not in found:
-                    return found  # type: ignore[return-value]
+                if all(i is not None for i in found):
+                    return [int(i) for i in found if i is not None]
     raise InputError(f"{weights}: its {total} classes need a names file beside it naming {', '.join(classes)}")
 
 
@@ -172,7 +276,7 @@ def _keep_classes(ref: darknet.DarknetNet, state: dict[str, torch.Tensor], ids: 
 
 
 def _init_aux(model: DarknetFusionNet, pretrained: dict[str, torch.Tensor]) -> None:
-    """Backbone 2 = backbone 1 on thermal replicated to R, G, B; other planes start with zero kernels."""
+    """Backbone 2 = its pretrained backbone on thermal replicated to R, G, B; other planes start with zero kernels."""
     own = model.aux.state_dict()
     first = next(k for k in own if k.endswith("conv.weight"))
     state = {k: v for k, v in pretrained.items() if k in own and k != first}
@@ -182,4 +286,3 @@ def _init_aux(model: DarknetFusionNet, pretrained: dict[str, torch.Tensor]) -> N
         kernel[:, aux.index("thermal")] = pretrained[first].sum(1)
     state[first] = kernel
     model.aux.load_state_dict(state, strict=True)
-

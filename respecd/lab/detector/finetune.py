@@ -2,9 +2,10 @@
 
 * ``--init`` names a respecd checkpoint (``builtin:NAME`` or a path) or a Darknet ``.weights``
   file (its cfg must be packaged, see ``darknet_fusion.cfg_text``): training starts there.
-* ``--freeze rgb,head,...`` keeps those top-level parts of the net as they are (no gradient,
-  batch-norm statistics untouched), e.g. the RGB backbone and the head of a pretrained
-  detector while backbone 2 learns thermal.
+  ``RGB.weights,AUX.weights`` takes backbone 2 from another Darknet model (``aux_backbone``).
+* ``--freeze rgb,head,...`` keeps those parts of the net as they are (no gradient, batch-norm
+  statistics untouched), e.g. the RGB backbone and the head of a pretrained detector while
+  backbone 2 learns thermal. A part is a module path, ``*`` matching one name (``fuse.*.rgb``).
 * After every epoch the EMA weights are scored on the validation split (mAP@0.5); the best
   epoch's weights are the result, and training stops after ``patience`` epochs without a
   better score (``respecd train`` draws loss and validation mAP per epoch).
@@ -12,6 +13,7 @@
 
 from __future__ import annotations
 
+from fnmatch import fnmatchcase
 from pathlib import Path
 
 import numpy as np
@@ -32,31 +34,45 @@ def initial_model(init: str | None, spec: ModelSpec) -> checkpoint.Net:
     if init.endswith(".weights"):
         from respecd.perception.darknet_fusion import from_darknet
 
-        path = Path(init)
-        if not path.is_file():
-            raise InputError(f"--init {init}: no such Darknet weights file")
-        darknet_spec = spec.model_copy(update={"backbone": f"darknet:{path.stem}"})
-        return from_darknet(darknet_spec, path)
+        paths = [Path(p) for p in init.split(",")]
+        for path in paths:
+            if not path.is_file() or path.suffix != ".weights":
+                raise InputError(f"--init {init}: no such Darknet weights file {path}")
+        if len(paths) > 2:
+            raise InputError(f"--init {init}: at most two Darknet weights files (RGB and head, backbone 2)")
+        update = {"backbone": f"darknet:{paths[0].stem}"}
+        if len(paths) == 2:
+            update["aux_backbone"] = f"darknet:{paths[1].stem}"
+        return from_darknet(spec.model_copy(update=update), paths[0], paths[-1] if len(paths) == 2 else None)
     model, _ = checkpoint.load(init)
     return model
 
 
+def frozen_modules(model: nn.Module, parts: tuple[str, ...]) -> list[nn.Module]:
+    """The modules ``parts`` names (module paths, ``*`` for one name); an unknown part is an InputError."""
+    named = dict(model.named_modules())
+    found: list[nn.Module] = []
+    for pattern in parts:
+        hits = [m for n, m in named.items() if n and fnmatchcase(n, pattern) and n.count(".") == pattern.count(".")]
+        if not hits:
+            children = ", ".join(n for n, _ in model.named_children())
+            raise InputError(f"--freeze {pattern}: the net has no part {pattern!r} (it has {children})")
+        found += hits
+    return found
+
+
 def freeze(model: nn.Module, parts: tuple[str, ...]) -> None:
-    """No gradients for the named top-level children; ``keep_frozen_eval`` keeps their BN still."""
-    children = dict(model.named_children())
-    for name in parts:
-        if name not in children:
-            raise InputError(f"--freeze {name}: the net has no part {name!r} (it has {', '.join(children)})")
-        for p in children[name].parameters():
+    """No gradients for the named parts; ``keep_frozen_eval`` keeps their BN still."""
+    for module in frozen_modules(model, parts):
+        for p in module.parameters():
             p.requires_grad_(False)
     setattr(model, "_frozen_parts", tuple(parts))  # noqa: B010 (read back by keep_frozen_eval)
 
 
 def keep_frozen_eval(model: nn.Module) -> None:
     """After ``model.train()``: frozen parts back to eval mode (running statistics stay pretrained)."""
-    children = dict(model.named_children())
-    for name in getattr(model, "_frozen_parts", ()):
-        children[name].eval()
+    for module in frozen_modules(model, getattr(model, "_frozen_parts", ())):
+        module.eval()
 
 
 @torch.no_grad()
