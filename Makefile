@@ -33,11 +33,13 @@ bench: install
 weights: install
 	$(BIN)/respecd train --data sim --out respecd/perception/weights/sim-rover.pt
 
-# builtin:rgbt (configs/spec-rover.yaml): the person-only Yolo-Fastest 1.1 imported twice (RGB backbone and
-# head as trained on real photos, the same backbone on thermal); no training. docs/PERCEPTION.md "Real images".
+# builtin:rgbt (configs/spec-rover.yaml): Yolo-Fastest 1.1 body (RGB backbone and head, as trained on real photos)
+# with Yolo-Fastest xl's backbone on thermal at half resolution; only the 1x1 convolutions mapping xl's features
+# into the head are trained, on simulator pairs (~7 min of one core). docs/PERCEPTION.md "Real images".
 weights-rgbt: install
-	$(BIN)/respecd train --data $(SHARED)/data/real/hituav_thermal --out respecd/perception/weights/rgbt.pt \
-	  --init $(SHARED)/data/pretrained/yolo_fastest/yolo-fastest-1.1_body.weights --aux thermal --epochs 0
+	$(BIN)/respecd train --data sim --out respecd/perception/weights/rgbt.pt \
+	  --init $(SHARED)/data/pretrained/yolo_fastest/yolo-fastest-1.1_body.weights,$(SHARED)/data/pretrained/yolo_fastest/yolo-fastest-1.1-xl.weights \
+	  --aux thermal --aux-scale 0.5 --freeze rgb,head,aux,fuse.*.rgb --epochs 3 --steps 100 --lr 0.003 --eval-frames 0
 
 # builtin:rgbt-hituav: backbone 2 fine-tuned on HIT-UAV's real thermal train split (RGB backbone, head and
 # fusion frozen), the epoch chosen on its val split; about an hour of one CPU core (the shipped file: epochs 1-5).

@@ -86,6 +86,7 @@ def test_spec_rover_profile_loads_the_shipped_real_checkpoint() -> None:
     assert profile.perception.weights == "builtin:rgbt"
     detector = FusionDetector.load(profile.perception.model_copy(update={"device": "cpu"}))
     assert isinstance(detector.model, DarknetFusionNet) and detector.channels == ("r", "g", "b", "thermal")
+    assert detector.model.spec.aux_backbone == "darknet:yolo-fastest-1.1-xl"  # the card's, docs/PERCEPTION.md
 
 
 XL = "yolo-fastest-1.1-xl"
