@@ -7,7 +7,8 @@ machine's detector happens to be. Two pieces:
 
 * ``LockstepLoop`` — an event loop that counts work handed to executors
   (``run_in_executor`` and so ``asyncio.to_thread``), so "a thread is still busy" is
-  visible;
+  visible, and callbacks scheduled (``call_soon``, which tasks and futures use), so "one
+  pass ran and caused nothing new" is visible without reading the loop's private queue;
 * ``LockstepClock`` — a ``ManualClock`` whose sleepers wake one at a time, in (time,
   arrival) order, each after the loop has settled.
 """
@@ -15,8 +16,10 @@ machine's detector happens to be. Two pieces:
 from __future__ import annotations
 
 import asyncio
+import contextvars
 import heapq
 import itertools
+import threading
 from collections import deque
 from collections.abc import Callable
 from typing import Any
@@ -38,7 +41,21 @@ class LockstepLoop(asyncio.SelectorEventLoop):
     def __init__(self) -> None:
         super().__init__()
         self.in_flight = 0
+        self.scheduled = 0  # call_soon calls so far: tasks and futures schedule through it
+        self._count_lock = threading.Lock()  # worker threads schedule too (call_soon_threadsafe)
         self._jobs: deque[tuple[asyncio.Future[Any], asyncio.Future[Any]]] = deque()
+
+    def call_soon(self, callback: Callable[..., object], *args: Any,  # type: ignore[override]
+                  context: contextvars.Context | None = None) -> asyncio.Handle:
+        with self._count_lock:
+            self.scheduled += 1
+        return super().call_soon(callback, *args, context=context)
+
+    def call_soon_threadsafe(self, callback: Callable[..., object], *args: Any,  # type: ignore[override]
+                             context: contextvars.Context | None = None) -> asyncio.Handle:
+        with self._count_lock:
+            self.scheduled += 1
+        return super().call_soon_threadsafe(callback, *args, context=context)
 
     def run_in_executor(self, executor: Any, func: Callable[..., Any], *args: Any) -> asyncio.Future[Any]:  # type: ignore[override]
         inner = super().run_in_executor(executor, func, *args)
@@ -62,9 +79,22 @@ class LockstepLoop(asyncio.SelectorEventLoop):
             else:
                 outer.set_result(inner.result())
 
-    def idle(self) -> bool:
-        """Nothing runnable now and no executor job outstanding."""
-        return self.in_flight == 0 and not self._ready  # type: ignore[attr-defined]
+    async def drained(self) -> bool:
+        """Run one pass of what is runnable now; True if that pass scheduled nothing new.
+
+        A marker callback queued behind everything runnable sees the count of callbacks
+        scheduled since it was queued: only itself means every callback ahead of it ran
+        and caused no further one.
+        """
+        queued = self.scheduled + 1
+        seen: asyncio.Future[int] = self.create_future()
+
+        def mark() -> None:
+            if not seen.done():
+                seen.set_result(self.scheduled)
+
+        self.call_soon(mark)
+        return await seen == queued
 
 
 class LockstepClock(ManualClock):
@@ -119,14 +149,18 @@ async def settle(loop: asyncio.AbstractEventLoop, done: Callable[[], bool] | Non
     once ``done()`` (a run that ended does not wait for a job nobody needs any more)."""
     idle_checks = 0
     while idle_checks < 2:  # twice in a row: a callback may schedule one more round
-        await asyncio.sleep(0)
+        drained = await loop.drained() if isinstance(loop, LockstepLoop) else await _one_pass()
         if done is not None and done():
             return
-        if isinstance(loop, LockstepLoop):
-            if loop.in_flight and not loop._ready:  # type: ignore[attr-defined]
-                await asyncio.sleep(POLL_S)  # a worker thread is busy: wait for it in real time
-                idle_checks = 0
-                continue
-            idle_checks = idle_checks + 1 if loop.idle() else 0
-        else:
-            idle_checks += 1  # best effort on a foreign loop
+        if isinstance(loop, LockstepLoop) and loop.in_flight:
+            if drained:
+                await asyncio.sleep(POLL_S)  # only a worker thread is busy: wait for it in real time
+            idle_checks = 0
+            continue
+        idle_checks = idle_checks + 1 if drained else 0
+
+
+async def _one_pass() -> bool:
+    """On a foreign loop there is no count: best effort, one yield counts as settled."""
+    await asyncio.sleep(0)
+    return True
