@@ -39,6 +39,7 @@ def session_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     profile["perception"] = {"enabled": False}  # no trained weights in the test environment
     profile["simulation"]["scenario_duration_s"] = 1.5  # several scenes within the session
     profile["controller"] = {"decision_period_s": 0.5, "window_s": 0.5}
+    profile["recording"] = {"chunk_size_kib": 256}  # a dozen chunks in this small log, whatever the load
     config = root / "profile.yaml"
     config.write_text(yaml.safe_dump(profile))
     log = root / "session.mcap"
@@ -177,9 +178,13 @@ def test_cut_log_replays_up_to_the_cut_with_a_warning(
 def test_damaged_log_replays_with_one_warning_per_damaged_chunk(
     session_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    with open(session_log, "rb") as f:
+        chunks = sorted(make_reader(f).get_summary().chunk_indexes, key=lambda c: c.chunk_start_offset)
+    assert len(chunks) >= 4
     data = bytearray(session_log.read_bytes())
-    for fraction in (0.3, 0.6):
-        data[int(len(data) * fraction)] ^= 0xFF
+    for fraction in (0.3, 0.6):  # two different chunks, neither the last
+        chunk = chunks[int(len(chunks) * fraction)]
+        data[chunk.chunk_start_offset + chunk.chunk_length // 2] ^= 0xFF
     bad = tmp_path / "bad.mcap"
     bad.write_bytes(data)
     assert _replay(bad, tmp_path / "bad.json", "--policy", "static") == 0
