@@ -37,7 +37,10 @@ def test_ten_second_run_of_the_default_profile(tmp_path):
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     log = events(result.stdout)
     names = [e["event"] for e in log]
-    assert "pipeline_up" in names and names[-1] == "stopped"
+    assert "pipeline_up" in names and "stopped" in names
+    # after "stopped" only the note that an inference was still running in its worker thread
+    # when the stop budget ran out (a 1280x720 attribution takes seconds on a loaded CPU)
+    assert set(names[len(names) - names[::-1].index("stopped"):]) <= {"abandoning_inflight_work"}
     statuses = [e for e in log if e["event"] == "status"]
     assert len(statuses) >= 8
     last = statuses[-1]
