@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -140,6 +141,10 @@ def test_a_replay_decodes_only_the_rgb_frames_the_detector_runs_on(
     # the detector's frames, plus the first frame (the replay reads the logged size from it) and
     # the frame of an inference still running when the replay ends (its percept is never counted)
     assert len(decoded) <= percepts + 2 < served + 2
+    for thread in threading.enumerate():  # that inference finishes on its own (seconds, under load)
+        if thread.name.startswith("perception"):
+            thread.join(timeout=60)
+            assert not thread.is_alive()
 
 
 def test_static_and_heuristic_give_a_comparison_table(
