@@ -47,7 +47,8 @@ def _wall(z: float = 3.0, kind: str = "solid") -> Occluder:
 
 
 def _scene(*targets: Target, occluders: tuple[Occluder, ...] = (), light: float = 0.9) -> SceneState:
-    return replace(_state(), targets=targets, occluders=occluders, light=light, ego_speed=0.0, ego_accel=0.0)
+    """A room of a night scene (20-25 C air: people well above it), lit as asked."""
+    return replace(_state(33.0, 3), targets=targets, occluders=occluders, light=light, ego_speed=0.0, ego_accel=0.0)
 
 
 def test_scenarios_in_paper_order_then_the_radar_only_one() -> None:
@@ -308,3 +309,17 @@ def test_a_nearer_person_hides_part_of_a_farther_one() -> None:
     back, front = _person(x=0.0, z=8.0), replace(_person(x=0.1, z=4.0), id=1)
     visible = {g["id"]: g["visible"] for g in ground_truth(_scene(back, front), (640, 360))}
     assert visible[1] == 1.0 and visible[0] < 0.3
+
+
+def test_daylight_fades_thermal_contrast_and_night_keeps_it() -> None:
+    """Good light is a sun-warmed room (thermal crossover): people read within a few kelvin of
+    the air, while in the dark lab they stand 3-12 K above it. So by day RGB must carry."""
+    day, night = [], []
+    for seed in range(12):
+        world = World(SimulationConfig(scenarios=["good-light-static", "poor-light-static"]), seed)
+        for t, out in ((10.0, day), (40.0, night)):
+            state = world.state_at(t)
+            out += [target.temperature_k - state.room.ambient_k for target in state.targets]
+    assert max(abs(d) for d in day) < 4.5 and np.median(np.abs(day)) < 2.0
+    assert min(night) > 3.0
+    assert any(d < 0 for d in day)  # sometimes the room is warmer than the clothing: the contrast inverts

@@ -24,12 +24,14 @@ class ScenarioSpec:
     moving: bool  # people walk (and the rover drives back and forth)
     occluder: Literal["solid", "smoke", "curtain"] | None
     max_distance_m: float | None = None  # nearer than the profile's far limit (an indoor curtain)
+    sunlit: bool = False  # daylight through windows: a sun-warmed room where LWIR contrast fades
 
 
 SPECS: dict[str, ScenarioSpec] = {
-    "good-light-static": ScenarioSpec("good", False, None),
+    # good light is daylight: the sun warms the room to about skin-and-clothing temperature
+    "good-light-static": ScenarioSpec("good", False, None, sunlit=True),
     "poor-light-static": ScenarioSpec("poor", False, None),
-    "good-light-moving": ScenarioSpec("good", True, None),
+    "good-light-moving": ScenarioSpec("good", True, None, sunlit=True),
     "poor-light-moving": ScenarioSpec("poor", True, None),
     "occlusion-partial": ScenarioSpec("good", False, "solid"),
     "occlusion-smoke": ScenarioSpec("good", False, "smoke"),
@@ -103,6 +105,13 @@ def _floor_point(
     return float(rng.uniform(-limit, limit)), z
 
 
+# Clothing surface temperature (K). Indoors at 20-25 C it reads 28-32 C; in a sun-warmed room
+# (30-35 C) clothing and the air meet near skin temperature: the LWIR "thermal crossover"
+# where a person's contrast against the background fades to a fraction of a kelvin.
+CLOTHING_K = {False: (301.0, 305.5), True: (304.0, 307.5)}
+AMBIENT_K = {False: (293.0, 298.0), True: (303.0, 308.0)}
+
+
 def _walkers(spec: ScenarioSpec, config: SimulationConfig, rng: np.random.Generator) -> tuple[Walker, ...]:
     count = int(rng.integers(config.people[0], config.people[1] + 1))
     near, far = config.distance_m
@@ -120,11 +129,11 @@ def _walkers(spec: ScenarioSpec, config: SimulationConfig, rng: np.random.Genera
             speed = _u(rng, config.walk_speed_mps)
         size = (_u(rng, (0.42, 0.6)), _u(rng, (1.5, 1.9)))
         color = tuple(int(c) for c in rng.integers(25, 230, size=3))
-        walkers.append(Walker(i, a, b, speed, _u(rng, (0.0, 60.0)), size, _u(rng, (301.0, 305.5)), color))  # type: ignore[arg-type]
+        walkers.append(Walker(i, a, b, speed, _u(rng, (0.0, 60.0)), size, _u(rng, CLOTHING_K[spec.sunlit]), color))  # type: ignore[arg-type]
     return tuple(walkers)
 
 
-def _room(config: SimulationConfig, rng: np.random.Generator, ambient_k: float) -> Room:
+def _room(config: SimulationConfig, rng: np.random.Generator, ambient_k: float, sunlit: bool = False) -> Room:
     wall_z = config.distance_m[1] + _u(rng, (1.5, 5.0))
     reflectors: list[Vec3] = []
     for _ in range(int(rng.integers(15, 40))):
@@ -140,6 +149,11 @@ def _room(config: SimulationConfig, rng: np.random.Generator, ambient_k: float) 
         (_u(rng, (0.05, 0.95)), _u(rng, (0.05, 0.6)), _u(rng, (0.02, 0.08)), _u(rng, (3.0, 15.0)))
         for _ in range(int(rng.integers(0, 4)))
     )
+    if sunlit:  # sunlit patches of floor and wall, a few kelvin warmer or cooler (shade) than the air
+        spots += tuple(
+            (_u(rng, (0.0, 1.0)), _u(rng, (0.2, 1.0)), _u(rng, (0.04, 0.2)), _u(rng, (-2.0, 4.0)))
+            for _ in range(int(rng.integers(3, 8)))
+        )
     wall = tuple(int(c) for c in rng.integers(90, 210, size=3))
     floor = tuple(int(c) for c in rng.integers(40, 150, size=3))
     seed = int(rng.integers(0, 2**31 - 1))
@@ -222,7 +236,7 @@ def draw_segment(name: str, config: SimulationConfig, rng: np.random.Generator) 
     """Draw every random parameter of one run of scenario ``name``."""
     spec = SPECS[name]
     light = _u(rng, config.good_light if spec.light == "good" else config.poor_light)
-    ambient_k = _u(rng, (293.0, 298.0))
+    ambient_k = _u(rng, AMBIENT_K[spec.sunlit])
     walkers = _walkers(spec, config, rng)
     occluders: tuple[Occluder, ...] = ()
     if spec.occluder == "solid":
@@ -234,5 +248,5 @@ def draw_segment(name: str, config: SimulationConfig, rng: np.random.Generator) 
     omega = 2 * math.pi / _u(rng, (8.0, 15.0))
     amplitude = _u(rng, config.ego_speed_mps) / omega if spec.moving else 0.0
     amplitude = min(amplitude, 0.5 * (config.distance_m[0] - 0.5))  # never drive into the nearest person
-    room = _room(config, rng, ambient_k)
+    room = _room(config, rng, ambient_k, spec.sunlit)
     return Segment(name, light, walkers, occluders, amplitude, omega, _u(rng, (0, 2 * math.pi)), room)
