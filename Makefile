@@ -30,8 +30,13 @@ bench: install
 	mkdir -p out
 	$(BIN)/respecd bench pipeline --json out/bench-pipeline.json
 
+# builtin:sim-rover: 1000 steps from scratch, then 500 steps fine-tuning at half the learning rate
+# (docs/PERCEPTION.md "The shipped checkpoint": the shipped base was trained before daylight crossover)
 weights: install
-	$(BIN)/respecd train --data sim --out respecd/perception/weights/sim-rover.pt
+	mkdir -p build
+	$(BIN)/respecd train --data sim --out build/sim-rover-base.pt --eval-frames 0
+	$(BIN)/respecd train --data sim --init build/sim-rover-base.pt --epochs 5 --lr 0.001 \
+	  --out respecd/perception/weights/sim-rover.pt
 
 # builtin:rgbt (configs/spec-rover.yaml): Yolo-Fastest 1.1 body (RGB backbone and head, as trained on real photos)
 # with Yolo-Fastest xl's backbone on thermal at half resolution; only the 1x1 convolutions mapping xl's features
