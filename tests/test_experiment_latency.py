@@ -1,0 +1,32 @@
+"""The detector latency the compute figures rest on: wall time, or CPU time on a busy machine."""
+
+from __future__ import annotations
+
+import time
+
+from respecd.lab.experiment import latency as lat
+
+
+class WaitingDetector:
+    """Waits 20 ms per call (a detector that is off the CPU, as one that waits for a core is)
+    and burns a little CPU when asked to attribute."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def infer(self, frames: dict, attribute: bool) -> None:
+        self.calls += 1
+        time.sleep(0.02)
+        if attribute:
+            end = time.process_time() + 0.01
+            while time.process_time() < end:
+                pass
+
+
+def test_wall_clock_counts_the_wait_and_cpu_clock_does_not() -> None:
+    detector = WaitingDetector()
+    wall = lat.measure(detector, lambda res: {}, [(640, 360)], 3, lat.CLOCKS["wall"])[(640, 360)]
+    cpu = lat.measure(detector, lambda res: {}, [(640, 360)], 3, lat.CLOCKS["cpu"])[(640, 360)]
+    assert detector.calls == 2 * 2 * (1 + 3)  # two clocks x (plain, attributed) x (warm-up + repeats)
+    assert wall.forward_s >= 0.02 and cpu.forward_s < 0.01
+    assert cpu.attribution_s >= 0.009  # the CPU the attributed call spent is counted
