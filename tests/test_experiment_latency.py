@@ -30,3 +30,24 @@ def test_wall_clock_counts_the_wait_and_cpu_clock_does_not() -> None:
     assert detector.calls == 2 * 2 * (1 + 3)  # two clocks x (plain, attributed) x (warm-up + repeats)
     assert wall.forward_s >= 0.02 and cpu.forward_s < 0.01
     assert cpu.attribution_s >= 0.009  # the CPU the attributed call spent is counted
+
+
+def test_reference_file_is_what_train_policy_and_bench_read(tmp_path) -> None:
+    import json
+    import subprocess
+    import sys
+
+    from respecd.config import load_profile
+    from respecd.lab.experiment.rollout import controller_for
+    from respecd.lab.experiment.setup import rgb_resolutions
+
+    out = tmp_path / "latency.json"
+    subprocess.run([sys.executable, "-m", "respecd.lab.experiment.latency", str(out), "--repeats", "1"], check=True,
+                   capture_output=True, timeout=300)
+    doc = json.loads(out.read_text())
+    assert doc["clock"] == "cpu" and doc["repeats"] == 1 and len(doc["detector_fingerprint"]) == 16
+    resolutions = rgb_resolutions(controller_for(load_profile("builtin:sim-rover"), "static"))
+    table = lat.load(out, resolutions)
+    assert set(table) == set(resolutions)
+    small, large = table[min(resolutions)], table[max(resolutions)]
+    assert large.forward_s > small.forward_s  # more pixels, more work: a real measurement

@@ -106,3 +106,46 @@ def load(path: Path, resolutions: Iterable[tuple[int, int]]) -> dict[tuple[int, 
         forward_ms, attribution_ms = (float(v) for v in values)  # type: ignore[arg-type]  # checked above
         out[(w, h)] = Latency.of(forward_ms / 1000.0, attribution_ms / 1000.0)
     return out
+
+
+def write_reference(out: Path, profile_ref: str = "builtin:sim-rover", weights: str | None = None, repeats: int = 5,
+                    clock: str = "cpu", seed: int = 500) -> dict[str, Any]:
+    """Measure the profile's detector as ``bench scenarios`` does before a run (the same
+    frames: scenario one of world ``seed``) and write a pinned latency file; scores nothing."""
+    import os
+
+    from respecd.config import load_profile
+    from respecd.lab.experiment.rollout import Piece, controller_for
+    from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
+
+    profile = load_profile(profile_ref)
+    detector = load_detector(profile, weights)
+    evaluator = make_evaluator(detector, profile, use_cache=False)
+    world = evaluator.world(Piece(profile.simulation.scenarios[0], seed, 10.0), profile.simulation)
+    table = measure(detector, sim_frames(world, evaluator.inputs), rgb_resolutions(controller_for(profile, "static")),
+                    repeats, CLOCKS[clock])
+    load = " ".join(f"{x:.2f}" for x in os.getloadavg())
+    doc = {"about": f"Detector latency ({clock} time, median of {repeats}, torch {profile.perception.torch_threads} "
+                    f"thread(s)) of {weights or profile.perception.weights} (outcome fingerprint "
+                    f"{evaluator.fingerprint}), measured by `python -m respecd.lab.experiment.latency` at load "
+                    f"average {load}. train-policy --latency and bench scenarios --latency read it.",
+           "clock": clock, "repeats": repeats, "load_average": load, "detector_fingerprint": evaluator.fingerprint,
+           "latency_ms": to_json(table)}
+    out.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
+    return doc
+
+
+# a pinned latency file: python -m respecd.lab.experiment.latency OUT.json [--clock cpu|wall] [--repeats N] ...
+if __name__ == "__main__":
+    import argparse
+
+    parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.latency",
+                                     description=write_reference.__doc__)
+    parser.add_argument("out", type=Path)
+    parser.add_argument("--profile", default="builtin:sim-rover")
+    parser.add_argument("--weights")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--clock", choices=sorted(CLOCKS), default="cpu")
+    parser.add_argument("--seed", type=int, default=500, help="world seed of the frames (default 500: validation)")
+    a = parser.parse_args()
+    print(json.dumps(write_reference(a.out, a.profile, a.weights, a.repeats, a.clock, a.seed)["latency_ms"]))
