@@ -67,14 +67,15 @@ async def test_a_stall_is_a_stall_however_often_the_controller_switches(radar: F
         try:
             await _until(lambda: driver.health.frames >= 2)
             radar.data_mode = "silent"  # the CLI still answers every switch
-            for request in itertools.islice(itertools.cycle((VELOCITY_20, RANGE_10)), 10):
+            deadline = time.monotonic() + 10.0  # under load a switch's CLI round trip takes longer
+            for request in itertools.cycle((VELOCITY_20, RANGE_10)):
                 await driver.apply(request)  # a learning controller switching every ~0.2 s
                 await asyncio.sleep(0.2)
-                if _events(logs, "radar.lost"):
+                if _events(logs, "radar.lost") or time.monotonic() > deadline:
                     break
         finally:
             await driver.stop()
-    lost = _events(logs, "radar.lost")  # limit: 0.3 s + 3 frames; ten switches take ~2.3 s
+    lost = _events(logs, "radar.lost")  # limit: 0.3 s + 3 frames; ten switches take ~2.3 s on a quiet machine
     assert lost and lost[0]["cause"] == "stall"
 
 
