@@ -6,8 +6,19 @@ from __future__ import annotations
 import asyncio
 import random
 import time
+from collections.abc import Coroutine
+from typing import Any
 
 from respecd.replay.lockstep import LockstepClock, LockstepLoop
+
+
+async def _drive(clock: LockstepClock, until: float, *coroutines: Coroutine[Any, Any, Any]) -> None:
+    """Run the coroutines on the lockstep clock up to ``until``, then cancel what is left."""
+    tasks = [asyncio.create_task(c) for c in coroutines]
+    await clock.run(until=until)
+    for task in tasks:
+        task.cancel()
+    await asyncio.gather(*tasks, return_exceptions=True)
 
 
 def _scenario(jitter_seed: int) -> list[tuple[float, str]]:
@@ -41,11 +52,7 @@ def _scenario(jitter_seed: int) -> list[tuple[float, str]]:
                     seen.append(results.get_nowait())
                 events.append((clock.now(), ",".join(seen)))
 
-        tasks = [asyncio.create_task(c) for c in (producer("a", 0.1), producer("b", 0.15), consumer())]
-        await clock.run(until=2.0)
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await _drive(clock, 2.0, producer("a", 0.1), producer("b", 0.15), consumer())
         return events
 
     with asyncio.Runner(loop_factory=LockstepLoop) as runner:
@@ -104,11 +111,7 @@ def test_paced_perception_skips_bundles_like_a_busy_detector() -> None:
                 rgb = Frame("rgb", k / 30, k, np.zeros((36, 64, 3), np.uint8))
                 bundles.put(Bundle(k / 30, {"rgb": rgb}, sync, k))
 
-        tasks = [asyncio.create_task(synchronizer()), asyncio.create_task(stage.run(bundles, percepts))]
-        await clock.run(until=2.0)
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await _drive(clock, 2.0, synchronizer(), stage.run(bundles, percepts))
         modelled = []
         while len(percepts):
             modelled.append(percepts.get_nowait().latency)
@@ -188,11 +191,7 @@ def _arrivals(detector: _InstantDetector) -> list[float]:
                     detector.last_tick = k / 30
                 bundles.put(Bundle(k / 30, {"rgb": Frame("rgb", k / 30, k, np.zeros((36, 64, 3), np.uint8))}, sync, k))
 
-        tasks = [asyncio.create_task(synchronizer()), asyncio.create_task(stage.run(bundles, percepts))]
-        await clock.run(until=0.7)
-        for task in tasks:
-            task.cancel()
-        await asyncio.gather(*tasks, return_exceptions=True)
+        await _drive(clock, 0.7, synchronizer(), stage.run(bundles, percepts))
         return arrived
 
     with asyncio.Runner(loop_factory=LockstepLoop) as runner:
