@@ -83,6 +83,25 @@ def test_train_command_rejects_bad_input(tmp_path: Path, capsys) -> None:
     assert cli_main(["train", "--data", "sim", "--out", str(tmp_path / "x.pt"), "--epochs", "0"]) == 2
 
 
+def test_train_recipe_flags_reach_the_training_config(tmp_path: Path, capsys) -> None:
+    import json
+
+    out = tmp_path / "sim.pt"
+    code = cli_main(["train", "--data", "sim", "--out", str(out), "--epochs", "1", "--steps", "1", "--batch", "2",
+                     "--eval-frames", "0", "--quiet", "--strip-zoom", "0.7,1.8", "--keep-cut", "0.4",
+                     "--radar-alone", "0.2", "--scenario-weight", "behind-curtain=3"])
+    assert code == 0
+    train = json.loads(out.with_suffix(".json").read_text())["train"]
+    assert train["augment"]["zoom"] == [0.7, 1.8] and train["augment"]["keep_cut"] == 0.4
+    assert [list(s) for s, w in train["augment"]["keep"] if w == 0.2] == [["radar"]]
+    weights = train["scenario_weights"]
+    assert weights["behind-curtain"] == 3.0 and weights["occlusion-partial"] == 2.0  # the others keep theirs
+    capsys.readouterr()
+    assert cli_main(["train", "--data", "sim", "--out", str(out), "--scenario-weight", "fog=2"]) == 2
+    assert "expected NAME=W" in capsys.readouterr().err
+    assert cli_main(["train", "--data", "sim", "--out", str(out), "--radar-alone", "1.5"]) == 2
+
+
 def _sample(w: int = 320, h: int = 180) -> Sample:
     planes = np.full((5, h, w), 100, np.uint8)
     boxes = np.array([[100, 40, 140, 160], [10, 10, 20, 20]], np.float32)

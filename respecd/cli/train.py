@@ -50,6 +50,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--val-scale", type=float, help="folder data: validation image scale (default --scale)")
     parser.add_argument("--crop", default="256x160", help="training crop WxH, multiples of 32 (default 256x160)")
     parser.add_argument("--zoom", default="0.6,2.0", help="training zoom range LO,HI of the decoded image")
+    parser.add_argument("--strip-zoom", default="0.8,1.25",
+                        help="sim: zoom range LO,HI of the full-height training strips (default 0.8,1.25)")
+    parser.add_argument("--keep-cut", type=float, default=0.9,
+                        help="a box a training window cuts to less than this share of its area is ignored, not a "
+                             "positive (default 0.9)")
+    parser.add_argument("--radar-alone", type=float, default=0.12,
+                        help="modality dropout: weight of 'radar only' among the kept-sensor subsets (default 0.12)")
+    parser.add_argument("--scenario-weight", default="", metavar="NAME=W,...",
+                        help="sim: how often a scenario is drawn, relative to 1 (default: simdata.SCENARIO_WEIGHTS)")
     parser.add_argument("--pseudo-rgb", type=float, default=0.0,
                         help="thermal-only data: share of crops whose RGB shows the thermal image (default 0)")
     parser.add_argument("--curve", type=Path, metavar="PNG",
@@ -65,7 +74,9 @@ def main(args: argparse.Namespace) -> int:
 
     _check(args)
     augment = AugmentConfig(size=_pair(args.crop, "--crop", int), scale=_pair(args.zoom, "--zoom", float, ","),
-                            pseudo_rgb=args.pseudo_rgb)
+                            zoom=_pair(args.strip_zoom, "--strip-zoom", float, ","), pseudo_rgb=args.pseudo_rgb,
+                            keep_cut=args.keep_cut)
+    augment = with_radar_alone(augment, args.radar_alone)
     if augment.size[0] % 32 or augment.size[1] % 32:
         raise InputError(f"--crop {args.crop}: both sides must be multiples of 32")
     sim = args.data == "sim"
@@ -76,6 +87,7 @@ def main(args: argparse.Namespace) -> int:
         progress=not args.quiet, augment=augment, init=args.init,
         freeze=tuple(p for p in args.freeze.split(",") if p), patience=args.patience, modality=args.modality,
         data_scale=args.scale, val_scale=args.val_scale, val_limit=args.val_limit,
+        scenario_weights=_scenario_weights(args.scenario_weight),
     )
     aux = tuple(m for m in args.aux.split(",") if m)
     try:
@@ -150,6 +162,36 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError(f"--data {args.data}: expected 'sim' or a dataset folder (LLVIP/VOC, COCO json, YOLO txt)")
     if args.out.suffix != ".pt":
         raise InputError(f"--out {args.out}: expected a .pt file name")
+
+
+def with_radar_alone(augment, weight: float):
+    """The dropout table with the 'radar only' subset's weight replaced (the others keep theirs)."""
+    from dataclasses import replace
+
+    if not 0 <= weight <= 1:
+        raise InputError(f"--radar-alone {weight}: expected a weight between 0 and 1")
+    return replace(augment, keep=tuple((s, weight if s == ("radar",) else p) for s, p in augment.keep))
+
+
+def _scenario_weights(text: str) -> dict[str, float] | None:
+    """'behind-curtain=3,occlusion-partial=2' -> the simulator's draw weights with these replaced."""
+    if not text:
+        return None
+    from respecd.lab.detector.simdata import SCENARIO_WEIGHTS
+    from respecd.sim.world import SCENARIOS
+
+    weights = dict(SCENARIO_WEIGHTS)
+    for item in text.split(","):
+        name, _, value = item.partition("=")
+        try:
+            weight = float(value)
+        except ValueError:
+            weight = -1.0
+        if name not in SCENARIOS or weight < 0:
+            raise InputError(f"--scenario-weight {item}: expected NAME=W with NAME one of {', '.join(SCENARIOS)} "
+                             "and W >= 0")
+        weights[name] = weight
+    return weights
 
 
 def _pair(text: str, flag: str, kind, sep: str = "x") -> tuple:

@@ -133,14 +133,16 @@ class SimStream:
     Each step draws one of the controller's resolutions and renders ``batch`` frames at 640x360
     (fewer at larger sizes, so a step costs about the same), ``per_segment`` instants from each
     random scenario run (the room's backgrounds are built once per run); scenarios are drawn
-    with ``SCENARIO_WEIGHTS`` (1 for the others).
+    with ``weights`` (default ``SCENARIO_WEIGHTS``; 1 for the others).
     """
 
     def __init__(self, frames: SimFrames, augment: AugmentConfig, batch: int, aux: tuple[str, ...],
-                 strip_width: int = 320, per_segment: int = 2) -> None:
+                 strip_width: int = 320, per_segment: int = 2, weights: dict[str, float] | None = None) -> None:
         self.frames, self.augment, self.batch, self.aux = frames, augment, batch, aux
         self.strip_width, self.per_segment = strip_width, per_segment
-        weights = np.array([SCENARIO_WEIGHTS.get(name, 1.0) for name in frames.sim.scenarios])
+        table = SCENARIO_WEIGHTS if weights is None else weights
+        self.weights = {name: table.get(name, 1.0) for name in frames.sim.scenarios}
+        weights = np.array(list(self.weights.values()))
         self.scenario_p = weights / weights.sum()
 
     def _segment(self, rng: np.random.Generator) -> int:

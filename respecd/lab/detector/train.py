@@ -56,6 +56,7 @@ class TrainConfig:
     data_scale: float = 0.5  # folder data: images decoded at this scale (LLVIP 1280x1024 -> 640x512)
     val_scale: float | None = None  # validation images at this scale (default: data_scale)
     val_limit: int = 300  # at most this many validation images per epoch (evenly spaced)
+    scenario_weights: dict[str, float] | None = None  # sim: draw weights (None: simdata.SCENARIO_WEIGHTS)
 
 
 class EMA:
@@ -99,7 +100,8 @@ def build_pool(cfg: TrainConfig, pcfg: PerceptionConfig):
     if cfg.data == "sim":
         from respecd.lab.detector.simdata import SimFrames, SimStream
 
-        return SimStream(SimFrames(pcfg, cfg.seed), cfg.augment, cfg.sim_batch, aux), None
+        stream = SimStream(SimFrames(pcfg, cfg.seed), cfg.augment, cfg.sim_batch, aux, weights=cfg.scenario_weights)
+        return stream, None
     from respecd.lab.detector.datasets import FolderSource, open_folder
 
     folder = open_folder(Path(cfg.data), pcfg.model.classes, cfg.modality, cfg.seed)
@@ -176,6 +178,7 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
         "train_cpu_s": round(time.process_time() - cpu_started, 1),
         "seed": cfg.seed,
         "augment": asdict(cfg.augment),
+        "scenario_weights": pool.weights if cfg.data == "sim" else None,
         "epoch_loss": [(r["epoch"], r["loss"]) for r in curve],  # for the CLI's curve
         "init": cfg.init,
         "freeze": list(cfg.freeze),
