@@ -82,19 +82,28 @@ def test_attribution_rows_sum_to_one_and_zero_channel_gets_nothing(method: str) 
 
 
 def test_ablation_drop_is_what_a_sensor_off_forward_pass_gives() -> None:
-    """The cached and partial passes change nothing: each drop equals a full forward with that sensor off."""
+    """The cached and partial passes change nothing: each drop equals a full forward with that sensor off,
+    where the box's confidence is the best among the anchors whose box overlaps it with IoU >= 0.5."""
+    from respecd.perception.boxes import box_iou
+
     model, x, presence = _random_detector_input(4)
     result = Attributor(model, "ablation")(x, presence, 0.0, 0.5, 20, 5)
-    _, scores, labels, anchors = result.detections
+    targets, scores, labels, _ = result.detections
     k = len(result.ranking)
+    moved = 0
     for column, (channels, flag) in enumerate((((0, 1, 2), None), ((3,), 0), ((4,), 1))):
         x_off, presence_off = x.clone(), presence.clone()
         x_off[:, list(channels)] = 0.0
         if flag is not None:
             presence_off[:, flag] = 0.0
         with torch.no_grad():
-            off = model(x_off, presence_off)[1][0, anchors[:k], labels[:k]].sigmoid()
-        assert result.ranking[:, column].tolist() == pytest.approx((scores[:k] - off).tolist(), abs=1e-5)
+            boxes, probabilities = model.decode(model(x_off, presence_off), tuple(x.shape[2:]))
+        for i in range(k):
+            overlapping = box_iou(targets[i : i + 1], boxes[0])[0] >= 0.5
+            best = float(probabilities[0, overlapping, labels[i]].max()) if overlapping.any() else 0.0
+            assert float(result.ranking[i, column]) == pytest.approx(float(scores[i]) - best, abs=1e-5)
+            moved += int(overlapping.sum()) > 1
+        assert moved  # other anchors than the target's own do overlap it: the match is over boxes
     assert result.ranking.abs().max() > 0.01  # the random net does respond to each sensor
     expected = result.ranking.clamp(min=0)
     expected = torch.nan_to_num(expected / expected.sum(1, keepdim=True))

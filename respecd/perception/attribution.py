@@ -4,13 +4,16 @@ For the top-K detections (after NMS) each method gives a per-target vector over 
 modalities (``rgb`` and the aux modalities), normalized to sum 1; the scene score is the
 confidence-weighted mean over targets. Two methods (profile ``perception.attribution_method``):
 
-* ``ablation`` (the default): the confidence each target's anchor loses when one modality
-  is switched off exactly as the daemon feeds a disabled sensor (zero plane, presence 0).
-  The drops, clipped at 0 and normalized, are the contributions, so the ranking is what a
-  controller acts on: the top-ranked sensor is the one whose loss costs the box the most.
-  Cost: the RGB backbone on a zero frame depends only on the input size (cached), the aux
-  backbone runs once more per aux modality that is on, the neck and the class branch once
-  per modality; about 2x a forward pass at 640x360 (docs/PERCEPTION.md has the figures).
+* ``ablation`` (the default): the confidence each target box loses when one modality is
+  switched off exactly as the daemon feeds a disabled sensor (zero plane, presence 0): with
+  the sensor off, the box's confidence is the best one among the anchors whose box overlaps
+  it with IoU >= 0.5, wherever the net now places it (not only the target's own anchor: with
+  one sensor off a neighbouring anchor often takes the detection over, and the deletion test
+  counts what is left of the box). The drops, clipped at 0 and normalized, are the
+  contributions, so the ranking is what a controller acts on: the top-ranked sensor is the
+  one whose loss costs the box the most. Cost: the RGB backbone on a zero frame depends only
+  on the input size (cached), the aux backbone runs once more per aux modality that is on,
+  the neck and the head once per modality (docs/PERCEPTION.md has the figures).
 * ``gradient`` (the paper's): the pre-NMS confidences of the K anchors back-propagated to the
   input; |gradient x input| summed over each box per channel. One backward pass serves all
   K targets (the gradient of the sum of their confidences), so overlapping boxes share some
@@ -27,11 +30,12 @@ from typing import Any, Literal
 
 import torch
 
-from respecd.perception.boxes import postprocess
+from respecd.perception.boxes import box_iou, postprocess
 from respecd.perception.model import Features, FusionNet
 
 RGB_CHANNELS = ("r", "g", "b")
 Method = Literal["ablation", "gradient"]
+MATCH_IOU = 0.5  # a box with a sensor off is "the same detection" if it overlaps the target this much
 METHODS: tuple[Method, ...] = ("ablation", "gradient")
 Detections = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]  # boxes, scores, labels, anchors
 
@@ -116,23 +120,30 @@ class Attributor:
             if len(dets[1]) == 0:
                 return Attribution(dets, self.modalities, None, None, None)
             k = min(top_k, len(dets[1]))  # postprocess sorts by score: these are the top K
-            anchors, labels = dets[3][:k], dets[2][:k]
-            base = probabilities[0, anchors, labels]
+            targets, labels = dets[0][:k], dets[2][:k]
+            base = dets[1][:k]
             drops = torch.zeros(k, len(self.modalities))
             for m in range(len(self.modalities)):
                 on = bool(x[:, :3].any()) if m == 0 else float(presence[0, m - 1]) > 0
                 if on:  # a sensor that is already off loses nothing by being switched off
-                    drops[:, m] = base - self._probabilities_off(x, presence, parts, m)[anchors, labels]
+                    drops[:, m] = base - _box_confidence(*self._detections_off(x, presence, parts, m), targets, labels)
         shares = _normalized(drops.clamp(min=0.0))
         scene = scene_score(shares, dets[1][:k])
         named = None if scene is None else dict(zip(self.modalities, scene.tolist(), strict=True))
         return Attribution(dets, self.modalities, shares, drops, named)
 
-    def _probabilities_off(self, x: torch.Tensor, presence: torch.Tensor, parts, m: int) -> torch.Tensor:
-        """(N, nc) class probabilities with modality ``m`` off: zero plane, presence 0."""
+    def _detections_off(self, x: torch.Tensor, presence: torch.Tensor, parts,
+                        m: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Boxes (N, 4) and class probabilities (N, nc) with modality ``m`` off: zero plane, presence 0."""
         if parts is None:
             x_off, presence_off = _switched_off(x, presence, m)
-            return self.model.decode(self.model(x_off, presence_off), tuple(x.shape[2:]))[1][0]
+            raw = self.model(x_off, presence_off)
+        else:
+            raw = self.model.fuse(*self._features_off(x, presence, parts, m))
+        boxes, probabilities = self.model.decode(raw, tuple(x.shape[2:]))
+        return boxes[0], probabilities[0]
+
+    def _features_off(self, x: torch.Tensor, presence: torch.Tensor, parts, m: int) -> tuple[Features, Features]:
         rgb, aux = parts
         if m == 0:
             rgb = self._rgb_off_features(x)
@@ -141,7 +152,7 @@ class Attributor:
             aux_off = x[:, 3:].clone()
             aux_off[:, m - 1] = 0.0
             aux = self.model.encode_aux(aux_off, presence_off)
-        return self.model.fuse(rgb, aux, classes_only=True).sigmoid()[0]
+        return rgb, aux
 
     def _rgb_off_features(self, x: torch.Tensor) -> Features:
         key = (tuple(x.shape[2:]), x.dtype, x.device)
@@ -165,6 +176,15 @@ class Attributor:
         scene = scene_score(channels, scores[:k])
         named = None if scene is None else grouped(self.model.spec.channels, scene)
         return Attribution(dets, self.modalities, shares, shares, named)
+
+
+def _box_confidence(boxes: torch.Tensor, probabilities: torch.Tensor, targets: torch.Tensor,
+                    labels: torch.Tensor) -> torch.Tensor:
+    """Per target box, the best confidence of its class among the anchors whose box overlaps it with
+    IoU >= 0.5: what is left of that detection, wherever the net now places it (0 if nothing)."""
+    overlap = box_iou(targets, boxes) >= MATCH_IOU  # (K, N)
+    scores = probabilities[:, labels].T  # (K, N)
+    return torch.where(overlap, scores, torch.zeros_like(scores)).amax(1)
 
 
 def _switched_off(x: torch.Tensor, presence: torch.Tensor, m: int) -> tuple[torch.Tensor, torch.Tensor]:
