@@ -142,8 +142,8 @@ class SimStream:
         self.strip_width, self.per_segment = strip_width, per_segment
         table = SCENARIO_WEIGHTS if weights is None else weights
         self.weights = {name: table.get(name, 1.0) for name in frames.sim.scenarios}
-        weights = np.array(list(self.weights.values()))
-        self.scenario_p = weights / weights.sum()
+        drawn = np.array(list(self.weights.values()))
+        self.scenario_p = drawn / drawn.sum()
 
     def _segment(self, rng: np.random.Generator) -> int:
         """A random run of a scenario drawn by weight (segment i runs scenario i mod N)."""
