@@ -124,6 +124,7 @@ class IWR6843Driver(Driver):
         self._running = False
         self._seq = 0
         self._last_packet = 0.0  # time.monotonic() of the last packet (or of the start of streaming)
+        self._streaming: ChirpProfile | None = None  # the profile last started; kept while a switch runs
         self._packets_since_switch = 0
         self.outage = OutageLog(self._log)
         self.switch_times_s: list[float] = []
@@ -242,7 +243,7 @@ class IWR6843Driver(Driver):
             self.health.error(err)
             raise DriverTimeoutError(f"radar {self.name}: CLI call failed: {err!r}") from err
         seconds = time.monotonic() - started
-        self.profile, self._sent = profile, request
+        self.profile, self._sent, self._streaming = profile, request, profile
         if profile is None:
             self._log.info("radar.disabled", switch_ms=round(seconds * 1000, 1))
             return replace(planned, notes=(*planned.notes, "radar stopped (sensorStop)"))
@@ -356,15 +357,21 @@ class IWR6843Driver(Driver):
         self._trouble = (kind, message)
         self._failed.set()
 
-    def _stall_limit_s(self) -> float:
-        period = self.profile.frame_period_ms / 1000 if self.profile is not None else 1.0
+    def _stall_limit_s(self, profile: ChirpProfile | None = None) -> float:
+        profile = profile or self.profile
+        period = profile.frame_period_ms / 1000 if profile is not None else 1.0
         return self.config.stall_timeout_s + 3 * period
 
     def _stalled(self) -> bool:
-        """No packet for the limit while the radar should stream, whatever the controller did meanwhile."""
-        if self.profile is None or self._lock.locked():
+        """No packet for the limit while the radar should stream, whatever the controller did meanwhile.
+
+        A switch in progress does not stop this clock: a controller that switches in step with
+        the watcher's polls would otherwise hide a stall for ever (seen on a quiet machine:
+        switches every 0.25 s, each check landing inside one).
+        """
+        if self._streaming is None:
             return False
-        return time.monotonic() - self._last_packet > self._stall_limit_s()
+        return time.monotonic() - self._last_packet > self._stall_limit_s(self._streaming)
 
     async def _watch(self) -> None:
         """Recover when the data port fails, goes silent, or a reconfiguration failed."""
