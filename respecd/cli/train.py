@@ -8,10 +8,15 @@ epoch, OUT.resume so that ``--resume`` continues an interrupted run.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from respecd.errors import InputError
+
+if TYPE_CHECKING:
+    from respecd.lab.detector.augment import AugmentConfig
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -76,7 +81,7 @@ def main(args: argparse.Namespace) -> int:
     augment = AugmentConfig(size=_pair(args.crop, "--crop", int), scale=_pair(args.zoom, "--zoom", float, ","),
                             zoom=_pair(args.strip_zoom, "--strip-zoom", float, ","), pseudo_rgb=args.pseudo_rgb,
                             keep_cut=args.keep_cut)
-    augment = with_radar_alone(augment, args.radar_alone)
+    augment = _with_radar_alone(augment, args.radar_alone)
     if augment.size[0] % 32 or augment.size[1] % 32:
         raise InputError(f"--crop {args.crop}: both sides must be multiples of 32")
     sim = args.data == "sim"
@@ -164,13 +169,11 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError(f"--out {args.out}: expected a .pt file name")
 
 
-def with_radar_alone(augment, weight: float):
+def _with_radar_alone(augment: AugmentConfig, weight: float) -> AugmentConfig:
     """The dropout table with the 'radar only' subset's weight replaced (the others keep theirs)."""
-    from dataclasses import replace
-
     if not 0 <= weight <= 1:
         raise InputError(f"--radar-alone {weight}: expected a weight between 0 and 1")
-    return replace(augment, keep=tuple((s, weight if s == ("radar",) else p) for s, p in augment.keep))
+    return dataclasses.replace(augment, keep=tuple((s, weight if s == ("radar",) else p) for s, p in augment.keep))
 
 
 def _scenario_weights(text: str) -> dict[str, float] | None:

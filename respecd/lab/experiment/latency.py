@@ -12,6 +12,7 @@ a quiet core would take where wall time would count the waits for a core too.
 from __future__ import annotations
 
 import json
+import os
 import statistics
 import time
 from collections.abc import Callable, Iterable
@@ -112,8 +113,6 @@ def write_reference(out: Path, profile_ref: str = "builtin:sim-rover", weights: 
                     clock: str = "cpu", seed: int = 500) -> dict[str, Any]:
     """Measure the profile's detector as ``bench scenarios`` does before a run (the same
     frames: scenario one of world ``seed``) and write a pinned latency file; scores nothing."""
-    import os
-
     from respecd.config import load_profile
     from respecd.lab.experiment.rollout import Piece, controller_for
     from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
