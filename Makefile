@@ -9,7 +9,7 @@ ARGS ?=
 
 SHARED ?= ../shared
 
-.PHONY: install run test bench weights weights-rgbt weights-rgbt-hituav policy lint clean
+.PHONY: install run test bench bench-peers weights weights-rgbt weights-rgbt-hituav policy lint clean
 
 install: $(VENV)/.installed
 
@@ -29,6 +29,13 @@ test: install
 bench: install
 	mkdir -p out
 	$(BIN)/respecd bench pipeline --json out/bench-pipeline.json
+
+# YOLOv8n for `respecd bench peers` (the daemon never imports it). Without its dependencies: they
+# include opencv-python, which would overwrite the headless OpenCV the project pins; building the
+# network needs only torch and torchvision (torchvision 0.28 is torch 2.13's). TI's parser,
+# juhasch/xwr68xxisk and message_filters are not on PyPI: docs/PERFORMANCE.md "Peers".
+bench-peers: install
+	$(BIN)/pip install --quiet --no-deps ultralytics==8.4.190 torchvision==0.28.0
 
 # builtin:sim-rover in six stages (docs/PERCEPTION.md "The shipped checkpoint"): from scratch, a fine-tune on the
 # daylight-crossover world, then four fine-tunes where cut people stay targets (--keep-cut 0.4), strips zoom to

@@ -16,4 +16,5 @@ BENCHES: dict[str, str] = {
     "replay": "respecd.lab.bench.replay",
     "live": "respecd.lab.bench.live",
     "soak": "respecd.lab.bench.soak",
+    "peers": "respecd.lab.bench.peers",
 }
