@@ -46,7 +46,8 @@ SHUTDOWN_TIMEOUT_S = 1.5  # SIGTERM to exit must stay within ~2 s
 CANCEL_GRACE_S = 0.3  # stages normally end at once when cancelled
 # Worker threads (renders, decoding, torch glue) hold the GIL for up to the switch interval
 # before the loop thread may run; CPython's 5 ms default alone would break the 30 Hz tick's
-# jitter budget, so the session asks for 1 ms.
+# jitter budget, so the session asks for 1 ms. 0.5 ms measured no better (docs/PERFORMANCE.md,
+# "GIL switch interval").
 GIL_SWITCH_INTERVAL_S = 0.001
 
 StatusSink = Callable[[dict[str, Any], str], None]
