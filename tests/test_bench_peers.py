@@ -12,18 +12,16 @@ import pytest
 from respecd.errors import InputError
 from respecd.lab.bench import peer_radar, peer_sync, peers
 
-SHARED_REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 
-
-def args(*extra: str) -> argparse.Namespace:
+def args(data: Path, *extra: str) -> argparse.Namespace:
     parser = argparse.ArgumentParser()
     peers.add_arguments(parser)
-    return parser.parse_args(["--data", str(SHARED_REAL), "--repeat", "1", "--rounds", "1", "--sync-seconds", "2",
+    return parser.parse_args(["--data", str(data), "--repeat", "1", "--rounds", "1", "--sync-seconds", "2",
                               "--detector-repeats", "1", *extra])
 
 
-def test_peers_bench_measures_ours_and_skips_missing_peers(tmp_path: Path) -> None:
-    figures = peers.run(args("--peers", str(tmp_path)))  # an empty folder: no checkout in it
+def test_peers_bench_measures_ours_and_skips_missing_peers(shared_data: Path, tmp_path: Path) -> None:
+    figures = peers.run(args(shared_data, "--peers", str(tmp_path)))  # an empty folder: no checkout in it
     radar, sync, detector = figures["radar_parser"], figures["synchronizer"], figures["detector"]
     assert radar["ours"]["frames"] == 101 and radar["ours"]["cpu_us_per_frame"] > 0
     assert "parser_mmw_demo.py" in radar["ti"]["skipped"] and "xwr68xxisk" in radar["juhasch"]["skipped"]
@@ -34,19 +32,19 @@ def test_peers_bench_measures_ours_and_skips_missing_peers(tmp_path: Path) -> No
         assert "make bench-peers" in detector["yolov8n"]["skipped"]
     else:
         assert detector["yolov8n"]["params"] == 3_157_200 and detector["yolov8n"]["x_ours"] > 0
-    assert "no --peers" in peers.run(args())["radar_parser"]["ti"]["skipped"]
+    assert "no --peers" in peers.run(args(shared_data))["radar_parser"]["ti"]["skipped"]
     assert "radar parser: ours" in peers.summary(figures)
 
 
-def test_bad_arguments_are_input_errors() -> None:
+def test_bad_arguments_are_input_errors(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="--repeat"):
-        peers.run(args("--repeat", "0"))
+        peers.run(args(tmp_path, "--repeat", "0"))
     with pytest.raises(InputError, match="cannot read the radar capture"):
-        peers.radar_parser(args("--data", "/nonexistent"))
+        peers.radar_parser(args(tmp_path))
 
 
-def test_the_output_comparison_catches_one_changed_value() -> None:
-    mine = peer_radar.decode_ours(peer_radar.ours((SHARED_REAL / peer_radar.CAPTURE).read_bytes()))
+def test_the_output_comparison_catches_one_changed_value(shared_data: Path) -> None:
+    mine = peer_radar.decode_ours(peer_radar.ours((shared_data / peer_radar.CAPTURE).read_bytes()))
     theirs = {k: (p.copy(), None if s is None else s.copy()) for k, (p, s) in mine.items()}
     assert peer_radar.compare(mine, theirs)["identical"]
     offset = next(k for k, (p, s) in theirs.items() if len(p) and s is not None)
