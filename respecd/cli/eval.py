@@ -20,6 +20,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from respecd.cli.args import resolution
 from respecd.errors import InputError
 
 EVAL_SCORE_THRESHOLD = 0.01
@@ -53,16 +54,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folder data: also record the top-level results in the checkpoint's card (WEIGHTS .json)")
 
 
-def _resolution(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError as err:
-        raise InputError(f"--rgb {text}: expected WIDTHxHEIGHT, e.g. 640x360") from err
-    if w < 32 or h < 32:
-        raise InputError(f"--rgb {text}: expected at least 32x32")
-    return w, h
-
-
 def main(args: argparse.Namespace) -> int:
     import torch
 
@@ -78,7 +69,7 @@ def main(args: argparse.Namespace) -> int:
     summary = None
     threshold = args.attribution_threshold if args.attribution_threshold is not None else OPERATING_THRESHOLD
     if args.data == "sim":
-        result = evaluate_sim(detector, args.frames, _resolution(args.rgb), progress=not args.quiet,
+        result = evaluate_sim(detector, args.frames, resolution(args.rgb, "--rgb"), progress=not args.quiet,
                               attribution_threshold=threshold)
         title = f"Simulated rover, held-out scenes ({args.weights})"
     else:

@@ -26,6 +26,13 @@ from typing import Any
 
 import numpy as np
 
+from respecd.clock import ManualClock
+from respecd.drivers.base import Driver
+from respecd.messages import Bundle, Frame, SensorConfig
+from respecd.queues import DropOldestQueue
+from respecd.sensors import Capabilities, DriverConfigBase
+from respecd.sync import Synchronizer, grid_time
+
 RATES = {"rgb": 30.0, "imu": 30.0, "depth": 15.0, "radar": 10.0, "thermal": 8.7}
 TOLERANCE_S = 0.05
 QUEUE_SIZE = 10
@@ -50,11 +57,6 @@ def stream(seconds: float, seed: int = 0) -> list[Arrival]:
 
 def ours(arrivals: list[Arrival]) -> dict[str, Any]:
     """CPU µs per input frame of our queues + synchronizer ticks over the stream."""
-    from respecd.clock import ManualClock
-    from respecd.messages import Bundle, Frame
-    from respecd.queues import DropOldestQueue
-    from respecd.sync import Synchronizer, grid_time
-
     drivers = {name: _driver(name, rate) for name, rate in RATES.items()}
     inputs = {name: DropOldestQueue[Frame](8) for name in drivers}
     sync = Synchronizer(drivers, inputs, DropOldestQueue[Bundle](4), ManualClock())
@@ -103,35 +105,31 @@ def load_message_filters(checkout: Path) -> types.ModuleType:
     return module
 
 
-def _driver(name: str, rate: float) -> Any:
-    from respecd.clock import ManualClock
-    from respecd.drivers.base import Driver
-    from respecd.messages import SensorConfig
-    from respecd.sensors import Capabilities, DriverConfigBase
+class _StreamDriver(Driver):
+    """Frames come from the bench's stream; only ``config`` and ``applied`` are read."""
 
-    class StreamDriver(Driver):
-        """Frames come from the bench's stream; only ``config`` and ``applied`` are read."""
+    key = "bench-stream"
 
-        key = "bench-stream"
+    @property
+    def capabilities(self) -> Capabilities:
+        return Capabilities(modality=self.modality)
 
-        @property
-        def capabilities(self) -> Capabilities:
-            return Capabilities(modality=self.modality)
+    async def start(self) -> None: ...
 
-        async def start(self) -> None: ...
+    async def stop(self) -> None: ...
 
-        async def stop(self) -> None: ...
+    async def frames(self) -> AsyncIterator[Any]:
+        return
+        yield
 
-        async def frames(self) -> AsyncIterator[Any]:
-            return
-            yield
+    async def apply(self, request: SensorConfig) -> SensorConfig:
+        return request
 
-        async def apply(self, request: SensorConfig) -> SensorConfig:
-            return request
 
+def _driver(name: str, rate: float) -> _StreamDriver:
     config = DriverConfigBase(driver="bench-stream", name=name, modality=name, rate_hz=rate,
                               tolerance_ms=TOLERANCE_S * 1000)
-    return StreamDriver(config, ManualClock())
+    return _StreamDriver(config, ManualClock())
 
 
 class _Message:

@@ -27,6 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from respecd.cli.args import resolution
 from respecd.errors import InputError
 from respecd.lab.bench import peer_radar, peer_sync
 from respecd.lab.bench.drivers import DEFAULT_DATA
@@ -123,10 +124,7 @@ def _our_forward(args: argparse.Namespace) -> tuple[Callable[[], object], Any]:
     from respecd.perception.config import PerceptionConfig
     from respecd.perception.detector import FusionDetector
 
-    try:
-        w, h = (int(v) for v in args.resolution.lower().split("x"))
-    except ValueError as err:
-        raise InputError(f"--resolution {args.resolution!r}: expected WxH, e.g. 640x360") from err
+    w, h = resolution(args.resolution, "--resolution")
     config = PerceptionConfig(weights=args.weights, model=checkpoint.spec_of(args.weights))
     model = FusionDetector.load(config, sim_calibration())
     aligned = model.prepare(_frames(1, (w, h)))
@@ -145,7 +143,8 @@ def _yolov8n(x: Any) -> tuple[Callable[[], object], int, str] | str:
     """YOLOv8n (80 classes, as published) built from ultralytics' own yaml, or why not."""
     import torch
 
-    os.environ.setdefault("YOLO_CONFIG_DIR", tempfile.mkdtemp(prefix="respecd-yolo-"))  # not ~/.config
+    if "YOLO_CONFIG_DIR" not in os.environ:  # ultralytics writes its settings there, not in ~/.config
+        os.environ["YOLO_CONFIG_DIR"] = tempfile.mkdtemp(prefix="respecd-yolo-")
     try:
         import ultralytics
         from ultralytics.nn.tasks import DetectionModel

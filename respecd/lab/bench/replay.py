@@ -27,6 +27,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from respecd.cli.args import resolution
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seconds", type=float, default=20.0, help="length of the simulated log to replay (s)")
@@ -40,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
-    width, height = (int(v) for v in args.resolution.lower().split("x"))
+    width, height = resolution(args.resolution, "--resolution")
     with tempfile.TemporaryDirectory(prefix="respecd-bench-replay-") as scratch:
         work = Path(args.keep) if args.keep else Path(scratch)
         work.mkdir(parents=True, exist_ok=True)
