@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -219,6 +220,28 @@ async def test_queue_drops_oldest_and_counts(tmp_path: Path) -> None:
     frames = list(open_log(recorder.paths[0]).frames("cam"))
     assert len(frames) + recorder.dropped == 300
     assert frames[-1].seq == 299  # the newest survive
+
+
+async def test_writer_encodes_in_batches_but_never_waits_on_a_half_full_queue_or_at_close(tmp_path: Path) -> None:
+    config = RecordingConfig(enabled=True, path=str(tmp_path / "batch.mcap"), queue_size=8, batch_s=5.0)
+    recorder = Recorder(config, PROFILE, ManualClock())
+    recorder.start()
+    imu = _frames(0, np.random.default_rng(2))["imu"]
+    recorder.on_frame("imu", imu)
+    await asyncio.sleep(0.5)
+    assert recorder.cpu_s == 0.0  # queued, not yet encoded: the writer sleeps out its 5 s batch
+    for seq in range(1, 4):  # four queued: half of queue_size wakes the writer at once
+        recorder.on_frame("imu", Frame("imu", seq / 30, seq, imu.data))
+    for _ in range(300):
+        if recorder.cpu_s > 0:
+            break
+        await asyncio.sleep(0.01)
+    assert recorder.cpu_s > 0
+    recorder.on_frame("imu", Frame("imu", 4 / 30, 4, imu.data))
+    started = time.monotonic()
+    await recorder.close()
+    assert time.monotonic() - started < 4.0  # close drains now, it does not sleep out the batch
+    assert [f.seq for f in open_log(recorder.paths[0]).frames("imu")] == [0, 1, 2, 3, 4]
 
 
 @pytest.mark.parametrize(
