@@ -9,7 +9,7 @@ import time
 from collections.abc import Coroutine
 from typing import Any
 
-from respecd.replay.lockstep import LockstepClock, LockstepLoop
+from respecd.replay.lockstep import LockstepClock, LockstepLoop, settle
 
 
 async def _drive(clock: LockstepClock, until: float, *coroutines: Coroutine[Any, Any, Any]) -> None:
@@ -146,6 +146,23 @@ def test_executor_results_come_back_in_submission_order() -> None:
     with asyncio.Runner(loop_factory=LockstepLoop) as runner:
         assert runner.run(main()) == [0, 1, 2]
 
+
+
+def test_settling_sleeps_until_a_busy_worker_finishes_instead_of_polling() -> None:
+    """A worker busy for 0.3 s: the loop wakes when it is done (and a few times to look at
+    ``done()``), not every 0.2 ms -- each of those wakes took the GIL from the detector."""
+
+    async def main() -> tuple[bool, int, float]:
+        loop = asyncio.get_running_loop()
+        job = loop.run_in_executor(None, time.sleep, 0.3)
+        before, started = loop.scheduled, time.monotonic()  # type: ignore[attr-defined]
+        await settle(loop)
+        return job.done(), loop.scheduled - before, time.monotonic() - started  # type: ignore[attr-defined]
+
+    with asyncio.Runner(loop_factory=LockstepLoop) as runner:
+        finished, callbacks, waited = runner.run(main())
+    assert finished and waited >= 0.29
+    assert callbacks < 100  # polling every 0.2 ms scheduled about 800 here
 
 class _SlowDetector(_InstantDetector):
     """Takes 0.1 s of real time, and notes whether the synchronizer ticked past its bundle meanwhile."""
