@@ -147,7 +147,6 @@ def test_executor_results_come_back_in_submission_order() -> None:
         assert runner.run(main()) == [0, 1, 2]
 
 
-
 def test_settling_sleeps_until_a_busy_worker_finishes_instead_of_polling() -> None:
     """A worker busy for 0.3 s: the loop wakes when it is done (and a few times to look at
     ``done()``), not every 0.2 ms -- each of those wakes took the GIL from the detector."""
