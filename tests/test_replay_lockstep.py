@@ -163,6 +163,7 @@ def test_settling_sleeps_until_a_busy_worker_finishes_instead_of_polling() -> No
     assert finished and waited >= 0.29
     assert callbacks < 100  # polling every 0.2 ms scheduled about 800 here
 
+
 class _SlowDetector(_InstantDetector):
     """Takes 0.1 s of real time, and notes whether the synchronizer ticked past its bundle meanwhile."""
 

@@ -48,7 +48,7 @@ class LockstepLoop(asyncio.SelectorEventLoop):
         self.scheduled = 0  # call_soon calls so far: tasks and futures schedule through it
         self._count_lock = threading.Lock()  # worker threads schedule too (call_soon_threadsafe)
         self._jobs: deque[tuple[asyncio.Future[Any], asyncio.Future[Any]]] = deque()
-        self._job_waiters: list[asyncio.Future[None]] = []
+        self._job_done: asyncio.Future[None] | None = None  # one waiter, however many look at it
 
     def call_soon(self, callback: Callable[..., object], *args: Any,  # type: ignore[override]
                   context: contextvars.Context | None = None) -> asyncio.Handle:
@@ -72,16 +72,15 @@ class LockstepLoop(asyncio.SelectorEventLoop):
 
     def job_finished(self) -> asyncio.Future[None]:
         """A future done when the next executor job finishes (whether or not it is delivered yet)."""
-        waiter: asyncio.Future[None] = self.create_future()
-        self._job_waiters.append(waiter)
-        return waiter
+        if self._job_done is None:
+            self._job_done = self.create_future()
+        return self._job_done
 
     def _deliver(self, _: asyncio.Future[Any]) -> None:
         """Release every finished job at the head of the submission order."""
-        waiters, self._job_waiters = self._job_waiters, []
-        for waiter in waiters:
-            if not waiter.done():
-                waiter.set_result(None)
+        waiter, self._job_done = self._job_done, None
+        if waiter is not None and not waiter.done():
+            waiter.set_result(None)
         while self._jobs and self._jobs[0][0].done():
             inner, outer = self._jobs.popleft()
             self.in_flight -= 1
@@ -169,24 +168,11 @@ async def settle(loop: asyncio.AbstractEventLoop, done: Callable[[], bool] | Non
             return
         if isinstance(loop, LockstepLoop) and loop.in_flight:
             if drained:
-                await _job_or_timeout(loop)  # only a worker thread is busy: wait for it in real time
+                # only a worker thread is busy: wait for it in real time
+                await asyncio.wait([loop.job_finished()], timeout=IDLE_WAKE_S)
             idle_checks = 0
             continue
         idle_checks = idle_checks + 1 if drained else 0
-
-
-async def _job_or_timeout(loop: LockstepLoop) -> None:
-    waiter = loop.job_finished()
-
-    def wake() -> None:
-        if not waiter.done():
-            waiter.set_result(None)
-
-    timer = loop.call_later(IDLE_WAKE_S, wake)
-    try:
-        await waiter
-    finally:
-        timer.cancel()
 
 
 async def _one_pass() -> bool:
