@@ -9,7 +9,7 @@ ARGS ?=
 
 SHARED ?= ../shared
 
-.PHONY: install run test bench bench-peers weights weights-rgbt weights-rgbt-hituav policy lint clean
+.PHONY: install run test bench bench-peers weights weights-rgbt weights-rgbt-hituav lint clean
 
 install: $(VENV)/.installed
 

@@ -72,6 +72,11 @@ def test_free_bandwidth_ablation_differs_from_sim_rover_only_in_the_bandwidth_we
     assert base_reward["bandwidth"] > 0 and ablation_reward == {**base_reward, "bandwidth": 0.0}
 
 
+def test_heavy_bandwidth_candidate_differs_from_sim_rover_only_in_the_bandwidth_weight():
+    base_reward, candidate_reward = _ablation_difference("sim-rover-heavy-bandwidth", "reward")
+    assert candidate_reward == {**base_reward, "bandwidth": 3 * base_reward["bandwidth"]}
+
+
 def test_no_load_ablation_differs_from_sim_rover_only_in_the_learners_factors():
     base_factors, ablation_factors = _ablation_difference("sim-rover-no-load", "factors")
     assert ablation_factors == tuple(f for f in base_factors if f != "load")

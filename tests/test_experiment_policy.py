@@ -93,6 +93,20 @@ def test_train_policy_with_a_pinned_latency_learns_the_same_table_twice(profile_
     assert meta_a["updates"] > 0 and np.array_equal(q_a, q_b) and np.array_equal(visits_a, visits_b)
 
 
+def test_static_probe_scores_each_variant_on_every_scenario(profile_path: Path, tmp_path: Path) -> None:
+    from respecd.lab.experiment.probe import probe, variants
+
+    actions = load_profile("builtin:sim-rover").controller.actions
+    assert list(variants(actions)) == ["everything at maximum", "rgb 640x360, the rest at maximum",
+                                       "rgb 960x540, the rest at maximum", "every rate <= 10 Hz"]
+    latency = tmp_path / "lat.json"
+    latency.write_text(json.dumps({"latency_ms": {"640x360": {"forward_ms": 40.0, "attribution_ms": 90.0}}}))
+    table = probe(profile_path, 0, 1, 1.0, latency, tmp_path / "cache", random_detector=True)
+    assert list(table) == ["everything at maximum", "every rate <= 10 Hz"]  # the tiny profile has one resolution
+    for row in table.values():
+        assert set(row) == {"pooled", *SCENARIOS} and all(0.0 <= v <= 1.0 for v in row.values())
+
+
 def test_rl_table_for_another_profile_is_refused(trained: Path) -> None:
     with pytest.raises(InputError, match="another state/action space"):
         rl_controller(load_profile("builtin:sim-rover"), trained)
@@ -266,3 +280,21 @@ def test_rollout_charges_the_detector_it_runs(profile_path: Path) -> None:
         load = max(min(busy, 1.0), terms["latency_s"] / controller.config.latency_budget_s)
         expected = bin3(load, controller.config.thresholds.load)
         assert controller.states.names(record.decision.state)["load"] == ("low", "medium", "high")[expected]
+
+
+def _run(met: list[bool], rl_map: float, compute_cut: float) -> dict:
+    goals = [{"goal": "static is the accuracy ceiling", "met": False}]
+    goals += [{"goal": f"criterion {i}", "met": m} for i, m in enumerate(met)]
+    return {"goals": goals, "pooled": {"rl": {"map50": rl_map}},
+            "summary": {"rl_vs_heuristic": {"compute_reduction": compute_cut}}}
+
+
+def test_table_choice_counts_criteria_then_accuracy_then_compute(tmp_path: Path) -> None:
+    from respecd.lab.experiment.choose import choose, criteria_met
+
+    a, c = _run([True, True, False, False, False], 0.70, 0.42), _run([True, True, False, True, False], 0.69, 0.40)
+    assert criteria_met(a) == 2 and choose({"A": a, "C": c}) == "C"  # more criteria beat accuracy
+    c = _run([True, True, False, False, False], 0.703, 0.45)
+    assert choose({"A": a, "C": c}) == "C"  # 0.003 apart is a tie on accuracy; C cuts more compute
+    c = _run([True, True, False, False, False], 0.69, 0.60)
+    assert choose({"A": a, "C": c}) == "A"  # 0.010 more accurate wins before compute

@@ -89,17 +89,36 @@ def test_train_recipe_flags_reach_the_training_config(tmp_path: Path, capsys) ->
     out = tmp_path / "sim.pt"
     code = cli_main(["train", "--data", "sim", "--out", str(out), "--epochs", "1", "--steps", "1", "--batch", "2",
                      "--eval-frames", "0", "--quiet", "--strip-zoom", "0.7,1.8", "--keep-cut", "0.4",
-                     "--radar-alone", "0.2", "--scenario-weight", "behind-curtain=3"])
+                     "--radar-alone", "0.2", "--scenario-weight", "behind-curtain=3",
+                     "--resolution-weight", "640x360=3"])
     assert code == 0
     train = json.loads(out.with_suffix(".json").read_text())["train"]
     assert train["augment"]["zoom"] == [0.7, 1.8] and train["augment"]["keep_cut"] == 0.4
     assert [list(s) for s, w in train["augment"]["keep"] if w == 0.2] == [["radar"]]
     weights = train["scenario_weights"]
     assert weights["behind-curtain"] == 3.0 and weights["occlusion-partial"] == 2.0  # the others keep theirs
+    assert train["resolution_weights"] == {"640x360": 3.0, "960x540": 1.0, "1280x720": 1.0}
     capsys.readouterr()
+    assert cli_main(["train", "--data", "sim", "--out", str(out), "--resolution-weight", "800x600=2"]) == 2
+    assert "expected WxH=W with WxH one of 640x360" in capsys.readouterr().err
+    assert cli_main(["train", "--data", "sim", "--out", str(out), "--resolution-weight", "640x360=0,960x540=0,"
+                     "1280x720=0"]) == 2
+    assert "at least one resolution" in capsys.readouterr().err
     assert cli_main(["train", "--data", "sim", "--out", str(out), "--scenario-weight", "fog=2"]) == 2
     assert "expected NAME=W" in capsys.readouterr().err
     assert cli_main(["train", "--data", "sim", "--out", str(out), "--radar-alone", "1.5"]) == 2
+
+
+def test_resolution_draw_is_uniform_by_default_and_follows_weights_when_given() -> None:
+    from respecd.lab.detector.simdata import RESOLUTIONS, draw_resolution
+
+    a, b = np.random.default_rng(3), np.random.default_rng(3)
+    assert [draw_resolution(a) for _ in range(20)] == [RESOLUTIONS[int(b.integers(3))] for _ in range(20)]
+    rng = np.random.default_rng(0)
+    draws = [draw_resolution(rng, np.array([0.6, 0.2, 0.2])) for _ in range(2000)]
+    share = draws.count((640, 360)) / len(draws)
+    assert 0.56 < share < 0.64
+    assert (640, 360) not in {draw_resolution(rng, np.array([0.0, 0.5, 0.5])) for _ in range(200)}
 
 
 def _sample(w: int = 320, h: int = 180) -> Sample:

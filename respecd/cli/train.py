@@ -64,6 +64,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="modality dropout: weight of 'radar only' among the kept-sensor subsets (default 0.12)")
     parser.add_argument("--scenario-weight", default="", metavar="NAME=W,...",
                         help="sim: how often a scenario is drawn, relative to 1 (default: simdata.SCENARIO_WEIGHTS)")
+    parser.add_argument("--resolution-weight", default="", metavar="WxH=W,...",
+                        help="sim: how often an RGB resolution is drawn per step, relative to 1 (default: uniform)")
     parser.add_argument("--pseudo-rgb", type=float, default=0.0,
                         help="thermal-only data: share of crops whose RGB shows the thermal image (default 0)")
     parser.add_argument("--curve", type=Path, metavar="PNG",
@@ -93,6 +95,7 @@ def main(args: argparse.Namespace) -> int:
         freeze=tuple(p for p in args.freeze.split(",") if p), patience=args.patience, modality=args.modality,
         data_scale=args.scale, val_scale=args.val_scale, val_limit=args.val_limit,
         scenario_weights=_scenario_weights(args.scenario_weight),
+        resolution_weights=_resolution_weights(args.resolution_weight),
     )
     aux = tuple(m for m in args.aux.split(",") if m)
     try:
@@ -194,6 +197,29 @@ def _scenario_weights(text: str) -> dict[str, float] | None:
             raise InputError(f"--scenario-weight {item}: expected NAME=W with NAME one of {', '.join(SCENARIOS)} "
                              "and W >= 0")
         weights[name] = weight
+    return weights
+
+
+def _resolution_weights(text: str) -> dict[tuple[int, int], float] | None:
+    """'640x360=2' -> {(640, 360): 2.0}; the other controller resolutions keep weight 1."""
+    if not text:
+        return None
+    from respecd.lab.detector.simdata import RESOLUTIONS
+
+    names = ", ".join(f"{w}x{h}" for w, h in RESOLUTIONS)
+    weights: dict[tuple[int, int], float] = {}
+    for item in text.split(","):
+        name, _, value = item.partition("=")
+        try:
+            size = tuple(int(v) for v in name.lower().split("x"))
+            weight = float(value)
+        except ValueError:
+            size, weight = (), -1.0
+        if size not in RESOLUTIONS or weight < 0:
+            raise InputError(f"--resolution-weight {item}: expected WxH=W with WxH one of {names} and W >= 0")
+        weights[size] = weight
+    if not any(weights.get(size, 1.0) > 0 for size in RESOLUTIONS):
+        raise InputError(f"--resolution-weight {text}: at least one resolution needs a weight above 0")
     return weights
 
 

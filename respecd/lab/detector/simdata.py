@@ -127,23 +127,38 @@ SCENARIO_WEIGHTS = {"good-light-static": 0.75, "poor-light-static": 0.75, "occlu
                     "behind-curtain": 2.0}
 
 
+def draw_resolution(rng: np.random.Generator, p: np.ndarray | None = None) -> tuple[int, int]:
+    """One of the controller's RGB resolutions: uniform (``p`` None, one ``rng.integers`` draw, as
+    every shipped stage drew it) or with probabilities ``p``."""
+    if p is None:
+        return RESOLUTIONS[int(rng.integers(len(RESOLUTIONS)))]
+    return RESOLUTIONS[int(rng.choice(len(RESOLUTIONS), p=p))]
+
+
 class SimStream:
     """Training batches from fresh frames: one RGB resolution per step, full-height strips.
 
     Each step draws one of the controller's resolutions and renders ``batch`` frames at 640x360
     (fewer at larger sizes, so a step costs about the same), ``per_segment`` instants from each
     random scenario run (the room's backgrounds are built once per run); scenarios are drawn
-    with ``weights`` (default ``SCENARIO_WEIGHTS``; 1 for the others).
+    with ``weights`` (default ``SCENARIO_WEIGHTS``; 1 for the others), resolutions with
+    ``resolution_weights`` (default 1 each: a fine-tune can favour the size the controller runs most).
     """
 
     def __init__(self, frames: SimFrames, augment: AugmentConfig, batch: int, aux: tuple[str, ...],
-                 strip_width: int = 320, per_segment: int = 2, weights: dict[str, float] | None = None) -> None:
+                 strip_width: int = 320, per_segment: int = 2, weights: dict[str, float] | None = None,
+                 resolution_weights: dict[tuple[int, int], float] | None = None) -> None:
         self.frames, self.augment, self.batch, self.aux = frames, augment, batch, aux
         self.strip_width, self.per_segment = strip_width, per_segment
         table = SCENARIO_WEIGHTS if weights is None else weights
         self.weights = {name: table.get(name, 1.0) for name in frames.sim.scenarios}
         drawn = np.array(list(self.weights.values()))
         self.scenario_p = drawn / drawn.sum()
+        sizes = resolution_weights or {}
+        self.resolution_weights = {f"{w}x{h}": sizes.get((w, h), 1.0) for w, h in RESOLUTIONS}
+        drawn = np.array(list(self.resolution_weights.values()))
+        # None when uniform: the draw stays rng.integers, so the shipped recipe's random stream is unchanged
+        self.resolution_p = None if np.all(drawn == drawn[0]) else drawn / drawn.sum()
 
     def _segment(self, rng: np.random.Generator) -> int:
         """A random run of a scenario drawn by weight (segment i runs scenario i mod N)."""
@@ -152,7 +167,7 @@ class SimStream:
 
     def draw(self, rng: np.random.Generator) -> tuple[list[Sample], tuple[int, int]]:
         """(samples, (width, height)) of one step."""
-        size = RESOLUTIONS[int(rng.integers(len(RESOLUTIONS)))]
+        size = draw_resolution(rng, self.resolution_p)
         height = math.ceil(size[1] / 32) * 32
         n = max(2, round(self.batch * 384 / height))
         out: list[Sample] = []

@@ -57,6 +57,7 @@ class TrainConfig:
     val_scale: float | None = None  # validation images at this scale (default: data_scale)
     val_limit: int = 300  # at most this many validation images per epoch (evenly spaced)
     scenario_weights: dict[str, float] | None = None  # sim: draw weights (None: simdata.SCENARIO_WEIGHTS)
+    resolution_weights: dict[tuple[int, int], float] | None = None  # sim: RGB size draw weights (None: uniform)
 
 
 class EMA:
@@ -100,7 +101,8 @@ def build_pool(cfg: TrainConfig, pcfg: PerceptionConfig):
     if cfg.data == "sim":
         from respecd.lab.detector.simdata import SimFrames, SimStream
 
-        stream = SimStream(SimFrames(pcfg, cfg.seed), cfg.augment, cfg.sim_batch, aux, weights=cfg.scenario_weights)
+        stream = SimStream(SimFrames(pcfg, cfg.seed), cfg.augment, cfg.sim_batch, aux, weights=cfg.scenario_weights,
+                           resolution_weights=cfg.resolution_weights)
         return stream, None
     from respecd.lab.detector.datasets import FolderSource, open_folder
 
@@ -179,6 +181,7 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
         "seed": cfg.seed,
         "augment": asdict(cfg.augment),
         "scenario_weights": pool.weights if cfg.data == "sim" else None,
+        "resolution_weights": pool.resolution_weights if cfg.data == "sim" else None,
         "epoch_loss": [(r["epoch"], r["loss"]) for r in curve],  # for the CLI's curve
         "init": cfg.init,
         "freeze": list(cfg.freeze),

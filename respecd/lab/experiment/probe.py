@@ -1,0 +1,77 @@
+"""Is static the ceiling? The static policy with one knob held below its maximum.
+
+A diagnosis for docs/RESULTS.md, not a baseline (the benchmark's ``static`` stays "everything
+at its maximum"): each smaller RGB resolution, and every rate capped at 10 Hz, with every
+other sensor setting at its maximum, scored on the same worlds and instants as the benchmark.
+
+usage: python -m respecd.lab.experiment.probe --seed 500 --worlds 3 --duration 20 --latency FILE
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any
+
+from respecd.lab.detector.metrics import ImageResult, average_precision
+
+
+def variants(actions: Any) -> dict[str, dict[str, Any]]:
+    """The static variants: name -> the action-space fields replaced."""
+    out: dict[str, dict[str, Any]] = {"everything at maximum": {}}
+    for res in actions.rgb_resolutions[:-1]:
+        out[f"rgb {res[0]}x{res[1]}, the rest at maximum"] = {"rgb_resolutions": (res,)}
+    out["every rate <= 10 Hz"] = {"rate_levels_hz": tuple(r for r in actions.rate_levels_hz if r <= 10)}
+    return out
+
+
+def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, latency: Path,
+          cache_dir: Path | None = None, random_detector: bool = False) -> dict[str, dict[str, float]]:
+    """variant -> {"pooled": mAP@0.5, scenario: mAP@0.5}, over ``worlds`` sets from ``seed``
+    (``random_detector``: an untrained net, for tests)."""
+    from respecd.config import load_profile
+    from respecd.lab.experiment import latency as lat
+    from respecd.lab.experiment.compare import world_sets
+    from respecd.lab.experiment.rollout import Rollout, controller_for
+    from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
+
+    base = load_profile(profile_ref)
+    evaluator = make_evaluator(load_detector(base, random_init=random_detector), base, True, cache_dir)
+    pinned = lat.load(latency, rgb_resolutions(controller_for(base, "static")))
+    actions = base.controller.actions
+    pieces_sets = world_sets(base.simulation.scenarios, seed, worlds, duration_s)
+    results: dict[str, dict[str, float]] = {}
+    try:
+        for name, change in variants(actions).items():
+            controller = base.controller.model_copy(update={"actions": actions.model_copy(update=change)})
+            profile = base.model_copy(update={"controller": controller})
+            rollout = Rollout(profile, evaluator, pinned, 1.0)
+            per: dict[str, list[ImageResult]] = {}
+            for pieces in pieces_sets:
+                for record in rollout.run(controller_for(profile, "static"), pieces):
+                    per.setdefault(record.scenario, []).extend(record.images)
+            pooled = [image for images in per.values() for image in images]
+            results[name] = {"pooled": average_precision(pooled, 0.5),
+                             **{s: average_precision(v, 0.5) for s, v in per.items()}}
+            cells = " ".join(f"{s} {v:.3f}" for s, v in results[name].items())
+            print(f"{name}: {cells}", flush=True)
+    finally:
+        evaluator.cache.close()
+    return results
+
+
+if __name__ == "__main__":
+    import json
+
+    parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.probe", description=probe.__doc__)
+    parser.add_argument("--profile", default="builtin:sim-rover")
+    parser.add_argument("--seed", type=int, default=500, help="first world seed (default 500: validation)")
+    parser.add_argument("--worlds", type=int, default=3)
+    parser.add_argument("--duration", type=float, default=20.0)
+    parser.add_argument("--latency", type=Path, required=True, help="a pinned latency file")
+    parser.add_argument("--cache-dir", type=Path)
+    parser.add_argument("--json", type=Path, help="write the table here too")
+    a = parser.parse_args()
+    table = probe(a.profile, a.seed, a.worlds, a.duration, a.latency, a.cache_dir)
+    if a.json:
+        a.json.write_text(json.dumps(table, indent=2) + "\n", encoding="utf-8")
