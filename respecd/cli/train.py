@@ -11,7 +11,7 @@ import argparse
 import dataclasses
 import json
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 from respecd.errors import InputError
 
@@ -179,6 +179,24 @@ def _with_radar_alone(augment: AugmentConfig, weight: float) -> AugmentConfig:
     return dataclasses.replace(augment, keep=tuple((s, weight if s == ("radar",) else p) for s, p in augment.keep))
 
 
+K = TypeVar("K")
+
+
+def _weight_list(text: str, flag: str, names: dict[str, K], label: str = "NAME") -> dict[K, float]:
+    """'A=3,B=2' -> {key of A: 3.0, key of B: 2.0}; ``names`` maps each accepted name (lower case) to its key."""
+    weights: dict[K, float] = {}
+    for item in text.split(","):
+        name, _, value = item.partition("=")
+        try:
+            weight = float(value)
+        except ValueError:
+            weight = -1.0
+        if name.lower() not in names or weight < 0:
+            raise InputError(f"{flag} {item}: expected {label}=W with {label} one of {', '.join(names)} and W >= 0")
+        weights[names[name.lower()]] = weight
+    return weights
+
+
 def _scenario_weights(text: str) -> dict[str, float] | None:
     """'behind-curtain=3,occlusion-partial=2' -> the simulator's draw weights with these replaced."""
     if not text:
@@ -186,18 +204,8 @@ def _scenario_weights(text: str) -> dict[str, float] | None:
     from respecd.lab.detector.simdata import SCENARIO_WEIGHTS
     from respecd.sim.world import SCENARIOS
 
-    weights = dict(SCENARIO_WEIGHTS)
-    for item in text.split(","):
-        name, _, value = item.partition("=")
-        try:
-            weight = float(value)
-        except ValueError:
-            weight = -1.0
-        if name not in SCENARIOS or weight < 0:
-            raise InputError(f"--scenario-weight {item}: expected NAME=W with NAME one of {', '.join(SCENARIOS)} "
-                             "and W >= 0")
-        weights[name] = weight
-    return weights
+    given = _weight_list(text, "--scenario-weight", {name: name for name in SCENARIOS})
+    return {**SCENARIO_WEIGHTS, **given}
 
 
 def _resolution_weights(text: str) -> dict[tuple[int, int], float] | None:
@@ -206,18 +214,7 @@ def _resolution_weights(text: str) -> dict[tuple[int, int], float] | None:
         return None
     from respecd.lab.detector.simdata import RESOLUTIONS
 
-    names = ", ".join(f"{w}x{h}" for w, h in RESOLUTIONS)
-    weights: dict[tuple[int, int], float] = {}
-    for item in text.split(","):
-        name, _, value = item.partition("=")
-        try:
-            size = tuple(int(v) for v in name.lower().split("x"))
-            weight = float(value)
-        except ValueError:
-            size, weight = (), -1.0
-        if size not in RESOLUTIONS or weight < 0:
-            raise InputError(f"--resolution-weight {item}: expected WxH=W with WxH one of {names} and W >= 0")
-        weights[size] = weight
+    weights = _weight_list(text, "--resolution-weight", {f"{w}x{h}": (w, h) for w, h in RESOLUTIONS}, "WxH")
     if not any(weights.get(size, 1.0) > 0 for size in RESOLUTIONS):
         raise InputError(f"--resolution-weight {text}: at least one resolution needs a weight above 0")
     return weights

@@ -62,6 +62,9 @@ def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, la
 
 if __name__ == "__main__":
     import json
+    import sys
+
+    from respecd.errors import InputError
 
     parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.probe", description=probe.__doc__)
     parser.add_argument("--profile", default="builtin:sim-rover")
@@ -72,6 +75,10 @@ if __name__ == "__main__":
     parser.add_argument("--cache-dir", type=Path)
     parser.add_argument("--json", type=Path, help="write the table here too")
     a = parser.parse_args()
-    table = probe(a.profile, a.seed, a.worlds, a.duration, a.latency, a.cache_dir)
+    try:
+        table = probe(a.profile, a.seed, a.worlds, a.duration, a.latency, a.cache_dir)
+    except InputError as err:  # a bad profile or latency file: where and what was expected, exit 2
+        print(f"probe: {err}", file=sys.stderr)
+        sys.exit(2)
     if a.json:
         a.json.write_text(json.dumps(table, indent=2) + "\n", encoding="utf-8")
