@@ -6,6 +6,7 @@ can be handed to a worker thread or a recorder without copying or locking.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import Any, Literal
@@ -82,6 +83,12 @@ class Detection:
     confidence: float
     label: str = "person"
     contributions: dict[str, float] | None = None  # per modality (rgb, thermal, ...), sums to 1
+
+
+def conf_agg(confidences: Sequence[float]) -> float:
+    """ConfAgg: mean of the top min(3, N) confidences, 0 when nothing is detected (PAPER.md)."""
+    top = sorted(confidences, reverse=True)[:3]
+    return float(sum(top) / len(top)) if top else 0.0
 
 
 @dataclass(frozen=True, slots=True)

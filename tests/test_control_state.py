@@ -10,8 +10,8 @@ import pytest
 
 from respecd.control.config import ALL_FACTORS, Thresholds
 from respecd.control.features import FeatureExtractor, Sample, Window, scene_light
-from respecd.control.state import Observation, StateSpace, bin3, conf_agg, dominant
-from respecd.messages import Bundle, Frame, Health, Percept, SyncStats
+from respecd.control.state import Observation, StateSpace, bin3, dominant
+from respecd.messages import Bundle, Frame, Health, Percept, SyncStats, conf_agg
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "real"
 

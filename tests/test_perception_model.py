@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 import torch
 
+from respecd.messages import conf_agg
 from respecd.perception.boxes import box_iou, nms, pad_to_stride
 from respecd.perception.config import ModelSpec, PerceptionConfig
-from respecd.perception.detector import FusionDetector, conf_agg, frames_from_arrays
+from respecd.perception.detector import FusionDetector, frames_from_arrays
 from respecd.perception.model import FusionNet, anchor_grid, decode_boxes
 
 TINY = ModelSpec(rgb_widths=(8, 8, 16, 16, 16), aux_widths=(8, 8, 8, 8, 8), neck_widths=(16, 16, 16))

@@ -28,12 +28,6 @@ BIN_NAMES: dict[str, tuple[str, str, str]] = {
 NO_CONTRIBUTION = "none"
 
 
-def conf_agg(confidences: Sequence[float]) -> float:
-    """ConfAgg: mean of the top min(3, N) confidences, 0 when nothing is detected (PAPER.md)."""
-    top = sorted(confidences, reverse=True)[:3]
-    return sum(top) / len(top) if top else 0.0
-
-
 def bin3(value: float, edges: tuple[float, float]) -> int:
     """0 below ``low``, 1 from ``low`` up to (not including) ``high``, 2 at or above ``high``."""
     low, high = edges

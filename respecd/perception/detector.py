@@ -15,7 +15,7 @@ import numpy as np
 import structlog
 import torch
 
-from respecd.messages import Detection, Frame, Percept
+from respecd.messages import Detection, Frame, Percept, conf_agg
 from respecd.perception import checkpoint
 from respecd.perception.align import AlignedInput, Aligner
 from respecd.perception.attribution import Attribution, Attributor, SceneScores
@@ -26,12 +26,6 @@ from respecd.perception.darknet_fusion import DarknetFusionNet
 from respecd.sensors import Calibration
 
 log = structlog.get_logger(__name__)
-
-
-def conf_agg(confidences: list[float]) -> float:
-    """Mean of the top min(3, N) confidences; 0 when nothing is detected (PAPER.md)."""
-    top = sorted(confidences, reverse=True)[:3]
-    return float(sum(top) / len(top)) if top else 0.0
 
 
 class FusionDetector:
