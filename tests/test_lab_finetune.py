@@ -7,15 +7,18 @@ import json
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
 from respecd.cli import main as cli_main
+from respecd.lab.detector.train import MixedSource
 from respecd.perception import checkpoint
 from respecd.perception.config import ModelSpec
 from respecd.perception.darknet_fusion import from_darknet
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
 
 @pytest.fixture
 def tiny_hituav(shared_data: Path, tmp_path: Path) -> Path:
@@ -92,3 +95,41 @@ def test_bad_fine_tune_arguments(tiny_hituav: Path, tmp_path: Path, capsys) -> N
     assert "the net has no part 'fuse.*.x'" in capsys.readouterr().err
     assert cli_main(["train", "--data", str(tiny_hituav), "--out", out, "--crop", "100x64"]) == 2
     assert "multiples of 32" in capsys.readouterr().err
+
+
+def test_fine_tune_on_a_folder_mixed_with_the_simulator(tiny_hituav: Path, shared_data: Path, tmp_path: Path) -> None:
+    weights = shared_data.parent / "pretrained" / "yolo_fastest" / "yolo-fastest-1.1_body.weights"
+    out = tmp_path / "mix.pt"
+    assert cli_main(["train", "--data", str(tiny_hituav), "--out", str(out), "--init", str(weights), "--aux", "thermal",
+                     "--freeze", "rgb,head,fuse", "--epochs", "1", "--steps", "4", "--batch", "2", "--crop", "128x96",
+                     "--zoom", "1.5,3", "--scale", "0.5", "--sim-mix", "0.5", "--threads", "1", "--quiet"]) == 0
+    train = checkpoint.read(out)["train"]
+    assert train["sim_mix"] == 0.5 and train["pool"] == 4  # the folder's four train images
+    assert {"good-light-static", "poor-light-static"} <= set(train["scenario_weights"])  # the sim draw, on the card
+    assert train["curve"][0]["val_map50"] is not None  # validated on the folder's val split, never the sim
+
+
+class _Tagged:
+    def __init__(self, tag: str) -> None:
+        self.tag = tag
+
+    def draw(self, rng: np.random.Generator) -> tuple[str, tuple[int, int]]:
+        return self.tag, (32, 32)
+
+
+def test_mixed_source_draws_the_simulator_at_its_share() -> None:
+    source = MixedSource(_Tagged("folder"), _Tagged("sim"), 0.3)
+    rng = np.random.default_rng(0)
+    share = sum(source.draw(rng)[0] == "sim" for _ in range(2000)) / 2000
+    assert 0.27 <= share <= 0.33
+
+
+@pytest.mark.parametrize("share", ["1.0", "-0.1"])
+def test_bad_sim_mix_is_refused(tiny_hituav: Path, tmp_path: Path, capsys, share: str) -> None:
+    assert cli_main(["train", "--data", str(tiny_hituav), "--out", str(tmp_path / "x.pt"), "--sim-mix", share]) == 2
+    assert "--sim-mix" in capsys.readouterr().err
+
+
+def test_sim_mix_needs_folder_data(tmp_path: Path, capsys) -> None:
+    assert cli_main(["train", "--data", "sim", "--out", str(tmp_path / "x.pt"), "--sim-mix", "0.5"]) == 2
+    assert "with --data a folder" in capsys.readouterr().err

@@ -66,6 +66,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sim: how often a scenario is drawn, relative to 1 (default: simdata.SCENARIO_WEIGHTS)")
     parser.add_argument("--resolution-weight", default="", metavar="WxH=W,...",
                         help="sim: how often an RGB resolution is drawn per step, relative to 1 (default: uniform)")
+    parser.add_argument("--sim-mix", type=float, default=0.0, metavar="P",
+                        help="folder data: draw this share of steps from the simulator instead, 0 <= P < 1 "
+                             "(default 0: the folder only)")
     parser.add_argument("--pseudo-rgb", type=float, default=0.0,
                         help="thermal-only data: share of crops whose RGB shows the thermal image (default 0)")
     parser.add_argument("--curve", type=Path, metavar="PNG",
@@ -89,13 +92,13 @@ def main(args: argparse.Namespace) -> int:
     sim = args.data == "sim"
     cfg = TrainConfig(
         data=args.data, out=args.out, epochs=args.epochs, batch=16 if sim else (args.batch or 16),
-        sim_batch=(args.batch or 10) if sim else 10, lr=args.lr, seed=args.seed,
+        sim_batch=(args.batch or 10) if sim else min(args.batch or 10, 10), lr=args.lr, seed=args.seed,
         steps_per_epoch=args.steps, threads=args.threads, resume=args.resume,
         progress=not args.quiet, augment=augment, init=args.init,
         freeze=tuple(p for p in args.freeze.split(",") if p), patience=args.patience, modality=args.modality,
         data_scale=args.scale, val_scale=args.val_scale, val_limit=args.val_limit,
         scenario_weights=_scenario_weights(args.scenario_weight),
-        resolution_weights=_resolution_weights(args.resolution_weight),
+        resolution_weights=_resolution_weights(args.resolution_weight), sim_mix=args.sim_mix,
     )
     aux = tuple(m for m in args.aux.split(",") if m)
     try:
@@ -168,6 +171,8 @@ def _check(args: argparse.Namespace) -> None:
                          f"(got {args.epochs}, {args.batch})")
     if args.data != "sim" and not Path(args.data).is_dir():
         raise InputError(f"--data {args.data}: expected 'sim' or a dataset folder (LLVIP/VOC, COCO json, YOLO txt)")
+    if not 0.0 <= args.sim_mix < 1.0 or (args.sim_mix and args.data == "sim"):
+        raise InputError(f"--sim-mix {args.sim_mix}: expected a share 0 <= P < 1 of steps, with --data a folder")
     if args.out.suffix != ".pt":
         raise InputError(f"--out {args.out}: expected a .pt file name")
 

@@ -58,6 +58,7 @@ class TrainConfig:
     val_limit: int = 300  # at most this many validation images per epoch (evenly spaced)
     scenario_weights: dict[str, float] | None = None  # sim: draw weights (None: simdata.SCENARIO_WEIGHTS)
     resolution_weights: dict[tuple[int, int], float] | None = None  # sim: RGB size draw weights (None: uniform)
+    sim_mix: float = 0.0  # folder data: share of steps drawn from the simulator instead (0: folder only)
 
 
 class EMA:
@@ -94,16 +95,33 @@ class CropSource:
         return batch, self.cfg.augment.size
 
 
+class MixedSource:
+    """Folder crops with a share of steps drawn from the simulator: a real set that lacks a
+    condition (HIT-UAV: drone views only) keeps seeing the simulator's street-level scenes."""
+
+    def __init__(self, folder: CropSource, sim, share: float) -> None:
+        self.folder, self.sim, self.share = folder, sim, share
+
+    def __len__(self) -> int:
+        return len(self.folder)
+
+    def draw(self, rng: np.random.Generator):
+        return (self.sim if rng.random() < self.share else self.folder).draw(rng)
+
+
+def _sim_stream(cfg: TrainConfig, pcfg: PerceptionConfig):
+    from respecd.lab.detector.simdata import SimFrames, SimStream
+
+    return SimStream(SimFrames(pcfg, cfg.seed), cfg.augment, cfg.sim_batch, pcfg.model.aux_modalities,
+                     weights=cfg.scenario_weights, resolution_weights=cfg.resolution_weights)
+
+
 def build_pool(cfg: TrainConfig, pcfg: PerceptionConfig):
     """Where batches come from, and validation samples (None for sim): frames rendered per step
     (the simulator), or a folder read lazily."""
     aux = pcfg.model.aux_modalities
     if cfg.data == "sim":
-        from respecd.lab.detector.simdata import SimFrames, SimStream
-
-        stream = SimStream(SimFrames(pcfg, cfg.seed), cfg.augment, cfg.sim_batch, aux, weights=cfg.scenario_weights,
-                           resolution_weights=cfg.resolution_weights)
-        return stream, None
+        return _sim_stream(cfg, pcfg), None
     from respecd.lab.detector.datasets import FolderSource, open_folder
 
     folder = open_folder(Path(cfg.data), pcfg.model.classes, cfg.modality, cfg.seed)
@@ -115,8 +133,9 @@ def build_pool(cfg: TrainConfig, pcfg: PerceptionConfig):
         raise InputError(f"--data {cfg.data}: no training images (only a val split)")
     step = max(1, math.ceil(len(folder.val) / max(1, cfg.val_limit)))
     val_scale = cfg.val_scale or cfg.data_scale
-    return (CropSource(FolderSource(folder.train, pcfg, cfg.data_scale), cfg, aux),
-            FolderSource(folder.val[::step], pcfg, val_scale))
+    crops = CropSource(FolderSource(folder.train, pcfg, cfg.data_scale), cfg, aux)
+    source = MixedSource(crops, _sim_stream(cfg, pcfg), cfg.sim_mix) if cfg.sim_mix > 0 else crops
+    return source, FolderSource(folder.val[::step], pcfg, val_scale)
 
 
 def _optimizer(model: nn.Module, cfg: TrainConfig) -> torch.optim.Optimizer:
@@ -169,19 +188,21 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
             log.info("early_stop", epoch=epoch + 1, patience=cfg.patience)
             break
     best = _best_epoch(curve)
+    sim = pool if cfg.data == "sim" else getattr(pool, "sim", None)
     summary = {
         "data": cfg.data,
         "epochs": cfg.epochs,
         "steps": total,
         "batch": cfg.sim_batch if cfg.data == "sim" else cfg.batch,
-        "pool": len(pool) if isinstance(pool, CropSource) else None,
+        "pool": len(pool) if isinstance(pool, CropSource | MixedSource) else None,
         "train_size": "strips 320 wide, full frame height" if cfg.data == "sim" else list(cfg.augment.size),
         "train_s": round(time.perf_counter() - started, 1),
         "train_cpu_s": round(time.process_time() - cpu_started, 1),
         "seed": cfg.seed,
         "augment": asdict(cfg.augment),
-        "scenario_weights": pool.weights if cfg.data == "sim" else None,
-        "resolution_weights": pool.resolution_weights if cfg.data == "sim" else None,
+        "sim_mix": cfg.sim_mix,
+        "scenario_weights": sim.weights if sim is not None else None,
+        "resolution_weights": sim.resolution_weights if sim is not None else None,
         "epoch_loss": [(r["epoch"], r["loss"]) for r in curve],  # for the CLI's curve
         "init": cfg.init,
         "freeze": list(cfg.freeze),
