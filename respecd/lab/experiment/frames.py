@@ -36,7 +36,6 @@ from respecd.sim.render import (
 )
 from respecd.sim.world import World
 
-DETECTOR_MODALITIES = ("rgb", "thermal", "radar", "depth")
 NOISE_SLOTS = 4
 
 
