@@ -16,6 +16,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import structlog
@@ -30,6 +31,9 @@ from respecd.lab.detector.yolo_loss import yolo_loss
 from respecd.perception import checkpoint
 from respecd.perception.config import PerceptionConfig
 from respecd.perception.darknet_fusion import DarknetFusionNet
+
+if TYPE_CHECKING:
+    from respecd.lab.detector.simdata import SimStream
 
 log = structlog.get_logger(__name__)
 
@@ -99,7 +103,7 @@ class MixedSource:
     """Folder crops with a share of steps drawn from the simulator: a real set that lacks a
     condition (HIT-UAV: drone views only) keeps seeing the simulator's street-level scenes."""
 
-    def __init__(self, folder: CropSource, sim, share: float) -> None:
+    def __init__(self, folder: CropSource, sim: SimStream, share: float) -> None:
         self.folder, self.sim, self.share = folder, sim, share
 
     def __len__(self) -> int:
@@ -109,7 +113,7 @@ class MixedSource:
         return (self.sim if rng.random() < self.share else self.folder).draw(rng)
 
 
-def _sim_stream(cfg: TrainConfig, pcfg: PerceptionConfig):
+def _sim_stream(cfg: TrainConfig, pcfg: PerceptionConfig) -> SimStream:
     from respecd.lab.detector.simdata import SimFrames, SimStream
 
     return SimStream(SimFrames(pcfg, cfg.seed), cfg.augment, cfg.sim_batch, pcfg.model.aux_modalities,
@@ -188,13 +192,13 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
             log.info("early_stop", epoch=epoch + 1, patience=cfg.patience)
             break
     best = _best_epoch(curve)
-    sim = pool if cfg.data == "sim" else getattr(pool, "sim", None)
+    sim = pool if cfg.data == "sim" else pool.sim if isinstance(pool, MixedSource) else None  # whose draw weights
     summary = {
         "data": cfg.data,
         "epochs": cfg.epochs,
         "steps": total,
         "batch": cfg.sim_batch if cfg.data == "sim" else cfg.batch,
-        "pool": len(pool) if isinstance(pool, CropSource | MixedSource) else None,
+        "pool": None if cfg.data == "sim" else len(pool),
         "train_size": "strips 320 wide, full frame height" if cfg.data == "sim" else list(cfg.augment.size),
         "train_s": round(time.perf_counter() - started, 1),
         "train_cpu_s": round(time.process_time() - cpu_started, 1),
