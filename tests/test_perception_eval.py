@@ -86,8 +86,9 @@ def test_eval_command_on_the_simulator_writes_every_key(tmp_path: Path) -> None:
     checkpoint.save(weights, FusionNet(TINY))
     out = tmp_path / "eval"
     assert cli_main(["eval", "--data", "sim", "--weights", str(weights), "--out", str(out), "--frames", "2",
-                     "--threads", "1", "--quiet"]) == 0
+                     "--seed", "7", "--threads", "1", "--quiet"]) == 0
     report = json.loads((out / "eval.json").read_text())
+    assert report["world_seed"] == 7 and "world seed 7" in (out / "eval.md").read_text()
     conditions = {"good-light", "dark", "occlusion", "smoke", "radar-only", "motion"}
     assert set(report["by_resolution"]) == {"640x360", "960x540", "1280x720"}
     for row in report["by_resolution"].values():
@@ -112,6 +113,11 @@ def test_faithfulness_compares_the_top_two_ranked_sensors() -> None:
     targets = np.array([[0, 0, 10, 10], [50, 50, 60, 60]], np.float32)
     found = np.array([[1, 1, 10, 10], [0, 0, 5, 5], [20, 20, 30, 30]], np.float32)
     assert _matched_confidence(targets, found, np.array([0.7, 0.9, 0.8])).tolist() == pytest.approx([0.7, 0.0])
+
+
+def test_eval_command_rejects_a_negative_world_seed(capsys) -> None:
+    assert cli_main(["eval", "--data", "sim", "--seed", "-1"]) == 2
+    assert "--seed -1: expected a world seed >= 0" in capsys.readouterr().err
 
 
 def test_eval_command_rejects_a_bad_checkpoint(tmp_path: Path, capsys) -> None:

@@ -34,6 +34,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/eval"),
                         help="folder for eval.md, contributions.png, eval.json")
     parser.add_argument("--frames", type=int, default=40, help="sim: instants per scenario (default 40)")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="sim: world seed of the held-out scenes (default 1000003; training uses 0)")
     parser.add_argument("--rgb", default="640x360",
                         help="sim: RGB size WxH of the ablation, contributions and deletion test (default 640x360)")
     parser.add_argument("--method", choices=("ablation", "gradient"), default=None,
@@ -58,7 +60,7 @@ def main(args: argparse.Namespace) -> int:
     import torch
 
     from respecd.lab.detector import report as report_mod
-    from respecd.lab.detector.evaluate import OPERATING_THRESHOLD, evaluate_samples, evaluate_sim
+    from respecd.lab.detector.evaluate import EVAL_SEED, OPERATING_THRESHOLD, evaluate_samples, evaluate_sim
     from respecd.perception.config import PerceptionConfig
 
     torch.set_num_threads(args.threads)
@@ -69,9 +71,12 @@ def main(args: argparse.Namespace) -> int:
     summary = None
     threshold = args.attribution_threshold if args.attribution_threshold is not None else OPERATING_THRESHOLD
     if args.data == "sim":
-        result = evaluate_sim(detector, args.frames, resolution(args.rgb, "--rgb"), progress=not args.quiet,
-                              attribution_threshold=threshold)
-        title = f"Simulated rover, held-out scenes ({args.weights})"
+        seed = EVAL_SEED if args.seed is None else args.seed
+        if seed < 0:
+            raise InputError(f"--seed {seed}: expected a world seed >= 0")
+        result = evaluate_sim(detector, args.frames, resolution(args.rgb, "--rgb"), seed=seed,
+                              progress=not args.quiet, attribution_threshold=threshold)
+        title = f"Simulated rover, held-out scenes, world seed {seed} ({args.weights})"
     else:
         samples, title = _folder_samples(args, detector.config)
         result = evaluate_samples(detector, samples, progress=not args.quiet, attribution_threshold=threshold)

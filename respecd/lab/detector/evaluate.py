@@ -238,4 +238,4 @@ def evaluate_sim(detector: FusionDetector, per_scenario: int, attribution_size: 
                 evaluation.add_resolution(sample, conditions)
             if size == tuple(attribution_size):
                 evaluation.add_attributed(sample, conditions)
-    return evaluation.report()
+    return {**evaluation.report(), "world_seed": seed}
