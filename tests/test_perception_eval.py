@@ -94,6 +94,7 @@ def test_eval_command_on_the_simulator_writes_every_key(tmp_path: Path) -> None:
     for row in report["by_resolution"].values():
         assert 0 <= row["map50"] <= 1 and set(row["by_condition"]) == conditions
         assert set(row["levels"]) == {"P3", "P4", "P5"}
+        assert set(row["recall_by_height"]["all"]) == {"0-0.1", "0.1-0.2", "0.2-0.4", "0.4-0.7", ">=0.7"}
     assert set(report["ablation"]) == {"all", *conditions}
     assert set(report["ablation"]["radar-only"]) == {"none", "no_rgb", "no_thermal", "no_radar", "rgb_only"}
     assert report["frames"]["radar-only"] == 2 and report["frames"]["all"] == 14  # 7 scenarios x 2 instants
@@ -113,6 +114,22 @@ def test_faithfulness_compares_the_top_two_ranked_sensors() -> None:
     targets = np.array([[0, 0, 10, 10], [50, 50, 60, 60]], np.float32)
     found = np.array([[1, 1, 10, 10], [0, 0, 5, 5], [20, 20, 30, 30]], np.float32)
     assert _matched_confidence(targets, found, np.array([0.7, 0.9, 0.8])).tolist() == pytest.approx([0.7, 0.0])
+
+
+def test_recall_by_height_bins_people_by_their_share_of_the_frame() -> None:
+    from respecd.lab.detector.evaluate import recall_by_height
+    from respecd.lab.detector.metrics import ImageResult
+
+    people = np.array([[0, 0, 10, 30], [50, 0, 60, 150], [100, 0, 140, 300], [200, 0, 210, 20]], np.float32)
+    found = np.array([[0, 0, 10, 30], [50, 0, 60, 150], [100, 0, 140, 160]], np.float32)  # the third: IoU 0.53
+    image = ImageResult(found, np.array([0.9, 0.2, 0.8]), people, np.array([False, False, False, True]))
+    assert recall_by_height([image], 300) == {
+        "0-0.1": [0, 0],  # the 20 px person is ignored
+        "0.1-0.2": [1, 1],  # 30 px: found
+        "0.2-0.4": [0, 0],
+        "0.4-0.7": [0, 1],  # 150 px: boxed, but at 0.2 < the daemon's 0.25
+        ">=0.7": [1, 1],  # 300 px: IoU 0.53 >= 0.5 counts
+    }
 
 
 def test_eval_command_rejects_a_negative_world_seed(capsys) -> None:

@@ -146,6 +146,7 @@ class Evaluation:
                 "by_condition": {c: mean_ap(images)["map50"] for c, images in by.items() if c != "all"},
                 "levels": dict(zip((f"P{int(np.log2(s))}" for s in STRIDES), self.levels[size].tolist(), strict=True)),
                 "tallest_detection_px": round(self.tallest[size], 1),
+                "recall_by_height": {c: recall_by_height(images, int(size.split("x")[1])) for c, images in by.items()},
             }
         cfg = self.detector.config
         return {
@@ -162,6 +163,29 @@ class Evaluation:
             "attribution": {"method": cfg.attribution_method, "rgb": self.attribution_size,
                             "score_threshold": self.attribution_threshold, "targets": cfg.attribution_targets},
         }
+
+
+HEIGHT_BINS = (0.0, 0.1, 0.2, 0.4, 0.7)  # person height as a share of the frame height
+
+
+def recall_by_height(images: list[ImageResult], frame_height: int,
+                     threshold: float = OPERATING_THRESHOLD) -> dict[str, list[int]]:
+    """[found, people] per person-height bin: a person counts as found when a detection at the daemon's
+    threshold overlaps it with IoU >= 0.5. Binned by share of the frame, so the same people land in the same
+    bin at every resolution and a resolution's weak sizes show (ignored boxes are left out)."""
+    edges = [*HEIGHT_BINS, float("inf")]
+    names = [f"{lo:g}-{hi:g}" if hi != float("inf") else f">={lo:g}" for lo, hi in zip(edges, edges[1:])]
+    found, people = np.zeros(len(names), np.int64), np.zeros(len(names), np.int64)
+    for image in images:
+        targets = image.gt_boxes[~image.gt_ignore]
+        if not len(targets):
+            continue
+        bins = np.searchsorted(HEIGHT_BINS, (targets[:, 3] - targets[:, 1]) / frame_height, side="right") - 1
+        strong = image.pred_scores >= threshold
+        hit = _matched_confidence(targets, image.pred_boxes[strong], image.pred_scores[strong]) > 0
+        np.add.at(people, bins, 1)
+        np.add.at(found, bins, hit.astype(np.int64))
+    return {name: [int(f), int(p)] for name, f, p in zip(names, found, people, strict=True)}
 
 
 def detection_count(images: list[ImageResult], threshold: float = OPERATING_THRESHOLD) -> int:

@@ -29,6 +29,9 @@ def _resolution_table(report: dict, conds: list[str]) -> list[str]:
                  + " |")
     lines.append("| tallest detection (px) | " + " | ".join(f"{rows[s]['tallest_detection_px']:.0f}" for s in sizes)
                  + " |")
+    for share in rows[sizes[0]].get("recall_by_height", {}).get("all", {}):  # people found, by height share
+        lines.append(f"| found >= 0.25, height {share} of frame | "
+                     + " | ".join("{} of {}".format(*rows[s]["recall_by_height"]["all"][share]) for s in sizes) + " |")
     return lines + [""]
 
 
