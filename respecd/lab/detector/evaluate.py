@@ -22,6 +22,7 @@ Detections are scored down to confidence 0.01 for mAP (the usual protocol).
 
 from __future__ import annotations
 
+import itertools
 from collections import defaultdict
 
 import numpy as np
@@ -173,8 +174,7 @@ def recall_by_height(images: list[ImageResult], frame_height: int,
     """[found, people] per person-height bin: a person counts as found when a detection at the daemon's
     threshold overlaps it with IoU >= 0.5. Binned by share of the frame, so the same people land in the same
     bin at every resolution and a resolution's weak sizes show (ignored boxes are left out)."""
-    edges = [*HEIGHT_BINS, float("inf")]
-    names = [f"{lo:g}-{hi:g}" if hi != float("inf") else f">={lo:g}" for lo, hi in zip(edges, edges[1:])]
+    names = [f"{lo:g}-{hi:g}" for lo, hi in itertools.pairwise(HEIGHT_BINS)] + [f">={HEIGHT_BINS[-1]:g}"]
     found, people = np.zeros(len(names), np.int64), np.zeros(len(names), np.int64)
     for image in images:
         targets = image.gt_boxes[~image.gt_ignore]
