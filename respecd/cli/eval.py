@@ -63,6 +63,9 @@ def main(args: argparse.Namespace) -> int:
     from respecd.lab.detector.evaluate import EVAL_SEED, OPERATING_THRESHOLD, evaluate_samples, evaluate_sim
     from respecd.perception.config import PerceptionConfig
 
+    seed = EVAL_SEED if args.seed is None else args.seed
+    if seed < 0:  # checked before the checkpoint loads: bad input fails at once
+        raise InputError(f"--seed {seed}: expected a world seed >= 0")
     torch.set_num_threads(args.threads)
     pcfg = PerceptionConfig(weights=args.weights, score_threshold=EVAL_SCORE_THRESHOLD)
     if args.method:
@@ -71,9 +74,6 @@ def main(args: argparse.Namespace) -> int:
     summary = None
     threshold = args.attribution_threshold if args.attribution_threshold is not None else OPERATING_THRESHOLD
     if args.data == "sim":
-        seed = EVAL_SEED if args.seed is None else args.seed
-        if seed < 0:
-            raise InputError(f"--seed {seed}: expected a world seed >= 0")
         result = evaluate_sim(detector, args.frames, resolution(args.rgb, "--rgb"), seed=seed,
                               progress=not args.quiet, attribution_threshold=threshold)
         title = f"Simulated rover, held-out scenes, world seed {seed} ({args.weights})"
