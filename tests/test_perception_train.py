@@ -88,12 +88,14 @@ def test_train_recipe_flags_reach_the_training_config(tmp_path: Path, capsys) ->
 
     out = tmp_path / "sim.pt"
     code = cli_main(["train", "--data", "sim", "--out", str(out), "--epochs", "1", "--steps", "1", "--batch", "2",
-                     "--eval-frames", "0", "--quiet", "--strip-zoom", "0.7,1.8", "--keep-cut", "0.4",
+                     "--eval-frames", "0", "--quiet", "--strip-zoom", "0.7,1.8", "--strip-zoom", "640x360=0.9,1.1",
+                     "--keep-cut", "0.4",
                      "--radar-alone", "0.2", "--scenario-weight", "behind-curtain=3",
                      "--resolution-weight", "640x360=3"])
     assert code == 0
     train = json.loads(out.with_suffix(".json").read_text())["train"]
     assert train["augment"]["zoom"] == [0.7, 1.8] and train["augment"]["keep_cut"] == 0.4
+    assert train["augment"]["zoom_at"] == [[[640, 360], [0.9, 1.1]]]
     assert [list(s) for s, w in train["augment"]["keep"] if w == 0.2] == [["radar"]]
     weights = train["scenario_weights"]
     assert weights["behind-curtain"] == 3.0 and weights["occlusion-partial"] == 2.0  # the others keep theirs
@@ -107,6 +109,25 @@ def test_train_recipe_flags_reach_the_training_config(tmp_path: Path, capsys) ->
     assert cli_main(["train", "--data", "sim", "--out", str(out), "--scenario-weight", "fog=2"]) == 2
     assert "expected NAME=W" in capsys.readouterr().err
     assert cli_main(["train", "--data", "sim", "--out", str(out), "--radar-alone", "1.5"]) == 2
+    capsys.readouterr()
+    assert cli_main(["train", "--data", "sim", "--out", str(out), "--strip-zoom", "800x600=0.7,1.4"]) == 2
+    assert "expected LO,HI or WxH=LO,HI with WxH one of 640x360" in capsys.readouterr().err
+    assert cli_main(["train", "--data", "sim", "--out", str(out), "--strip-zoom", "640x360=1.4,0.7"]) == 2
+    assert "with LO <= HI" in capsys.readouterr().err
+
+
+def test_a_strip_zooms_by_the_range_of_its_rgb_size() -> None:
+    """A per-size range replaces the default one only for frames of that size."""
+    from respecd.lab.detector.augment import strip
+
+    cfg = AugmentConfig(zoom=(1.0, 1.0), zoom_at=(((640, 360), (2.0, 2.0)),), target_bias=1.0)
+    assert cfg.zoom_for((640, 360)) == (2.0, 2.0) and cfg.zoom_for((1280, 720)) == (1.0, 1.0)
+    sample = Sample(np.zeros((5, 360, 640), np.float32), np.ones(2, np.float32),
+                    np.array([[300, 40, 330, 140]], np.float32), np.array([False]))  # 100 px tall
+    rng = np.random.default_rng(0)
+    for size, height in (((640, 360), 200.0), ((1280, 720), 100.0)):
+        s = strip(sample, 320, 736, rng, cfg, cfg.zoom_for(size))
+        assert len(s.boxes) == 1 and float(s.boxes[0, 3] - s.boxes[0, 1]) == pytest.approx(height)
 
 
 def test_resolution_draw_is_uniform_by_default_and_follows_weights_when_given() -> None:

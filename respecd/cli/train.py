@@ -55,8 +55,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--val-scale", type=float, help="folder data: validation image scale (default --scale)")
     parser.add_argument("--crop", default="256x160", help="training crop WxH, multiples of 32 (default 256x160)")
     parser.add_argument("--zoom", default="0.6,2.0", help="training zoom range LO,HI of the decoded image")
-    parser.add_argument("--strip-zoom", default="0.8,1.25",
-                        help="sim: zoom range LO,HI of the full-height training strips (default 0.8,1.25)")
+    parser.add_argument("--strip-zoom", action="append", metavar="[WxH=]LO,HI",
+                        help="sim: zoom range LO,HI of the full-height training strips (default 0.8,1.25); "
+                             "WxH=LO,HI sets one RGB size's range (repeat the flag for several)")
     parser.add_argument("--keep-cut", type=float, default=0.9,
                         help="a box a training window cuts to less than this share of its area is ignored, not a "
                              "positive (default 0.9)")
@@ -83,9 +84,9 @@ def main(args: argparse.Namespace) -> int:
     from respecd.perception.config import PerceptionConfig
 
     _check(args)
+    zoom, zoom_at = _strip_zoom(args.strip_zoom or [])
     augment = AugmentConfig(size=_pair(args.crop, "--crop", int), scale=_pair(args.zoom, "--zoom", float, ","),
-                            zoom=_pair(args.strip_zoom, "--strip-zoom", float, ","), pseudo_rgb=args.pseudo_rgb,
-                            keep_cut=args.keep_cut)
+                            zoom=zoom, zoom_at=zoom_at, pseudo_rgb=args.pseudo_rgb, keep_cut=args.keep_cut)
     augment = _with_radar_alone(augment, args.radar_alone)
     if augment.size[0] % 32 or augment.size[1] % 32:
         raise InputError(f"--crop {args.crop}: both sides must be multiples of 32")
@@ -223,6 +224,25 @@ def _resolution_weights(text: str) -> dict[tuple[int, int], float] | None:
     if not any(weights.get(size, 1.0) > 0 for size in RESOLUTIONS):
         raise InputError(f"--resolution-weight {text}: at least one resolution needs a weight above 0")
     return weights
+
+
+def _strip_zoom(items: list[str]) -> tuple[tuple[float, float], tuple]:
+    """['0.7,2.0', '640x360=0.7,1.4'] -> ((0.7, 2.0), (((640, 360), (0.7, 1.4)),)): the default range
+    (0.8,1.25 unless a plain LO,HI is given) and the per-size ones."""
+    from respecd.lab.detector.simdata import RESOLUTIONS
+
+    sizes = {f"{w}x{h}": (w, h) for w, h in RESOLUTIONS}
+    zoom, zoom_at = (0.8, 1.25), {}
+    for item in items:
+        name, sep, span = item.rpartition("=")
+        if sep and name.lower() not in sizes:
+            raise InputError(f"--strip-zoom {item}: expected LO,HI or WxH=LO,HI with WxH one of {', '.join(sizes)}")
+        pair = _pair(span, "--strip-zoom", float, ",")
+        if sep:
+            zoom_at[sizes[name.lower()]] = pair
+        else:
+            zoom = pair
+    return zoom, tuple(sorted(zoom_at.items()))
 
 
 def _pair(text: str, flag: str, kind, sep: str = "x") -> tuple:

@@ -35,6 +35,9 @@ class AugmentConfig:
     size: tuple[int, int] = (256, 160)  # crop width, height for scale_crop / mosaic (multiples of 32)
     scale: tuple[float, float] = (0.6, 2.0)  # log-uniform zoom of the source sample (crops)
     zoom: tuple[float, float] = (0.8, 1.25)  # log-uniform zoom of a strip
+    # per RGB size (w, h): its own strip zoom range, replacing ``zoom`` there (a fine-tune can zoom
+    # 640x360 frames near their own scale and still show 1280x720 people up to twice their size)
+    zoom_at: tuple[tuple[tuple[int, int], tuple[float, float]], ...] = ()
     mosaic: float = 0.5  # probability of a 4-sample mosaic (crops)
     flip: float = 0.5
     rgb_gain: tuple[float, float] = (0.6, 1.4)
@@ -53,6 +56,10 @@ class AugmentConfig:
     target_bias: float = 0.8  # probability that a window is centred near a person
     keep_cut: float = 0.9  # a box the window cuts to less than this share of its area is ignored
     min_seen: float = 0.05  # a camera sees a person if at least this share of its light gets through
+
+    def zoom_for(self, size: tuple[int, int]) -> tuple[float, float]:
+        """The strip zoom range of frames rendered at RGB ``size``."""
+        return dict(self.zoom_at).get((size[0], size[1]), self.zoom)
 
 
 def _window(s: Sample, z: float, ox: float, oy: float, w: int, h: int, cfg: AugmentConfig) -> Sample:
@@ -79,13 +86,15 @@ def _centre(s: Sample, z: float, w: int, h: int, rng: np.random.Generator, cfg: 
     return rng.uniform(0, src_w * z), rng.uniform(0, src_h * z)
 
 
-def strip(s: Sample, w: int, h: int, rng: np.random.Generator, cfg: AugmentConfig) -> Sample:
-    """A w x h window of the frame zoomed by a random factor; h is the padded frame height.
+def strip(s: Sample, w: int, h: int, rng: np.random.Generator, cfg: AugmentConfig,
+          zoom: tuple[float, float] | None = None) -> Sample:
+    """A w x h window of the frame zoomed by a random factor in ``zoom`` (default ``cfg.zoom``);
+    h is the padded frame height.
 
     Zoomed out, the frame sits at the top with a black band below (like the stride padding
     at run time); zoomed in, the window takes a random band of rows.
     """
-    z = float(np.exp(rng.uniform(*np.log(cfg.zoom))))
+    z = float(np.exp(rng.uniform(*np.log(zoom or cfg.zoom))))
     cx, _ = _centre(s, z, w, h, rng, cfg)
     excess = s.planes.shape[1] * z - h
     oy = rng.uniform(0, excess) if excess > 0 else 0.0

@@ -175,6 +175,6 @@ class SimStream:
             segment = self._segment(rng)
             for _ in range(min(self.per_segment, n - len(out))):
                 s = self.frames.sample(self.frames.time_in(segment, rng.uniform(0.02, 0.98)), size, rng, True)
-                s = strip(s, self.strip_width, height, rng, self.augment)
+                s = strip(s, self.strip_width, height, rng, self.augment, self.augment.zoom_for(size))
                 out.append(photometric(s, rng, self.augment, self.aux))
         return out, (self.strip_width, height)
