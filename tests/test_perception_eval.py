@@ -95,6 +95,8 @@ def test_eval_command_on_the_simulator_writes_every_key(tmp_path: Path) -> None:
         assert 0 <= row["map50"] <= 1 and set(row["by_condition"]) == conditions
         assert set(row["levels"]) == {"P3", "P4", "P5"}
         assert set(row["recall_by_height"]["all"]) == {"0-0.1", "0.1-0.2", "0.2-0.4", "0.4-0.7", ">=0.7"}
+        assert set(row["false_boxes"]) == {"all", *conditions}
+        assert set(row["false_boxes"]["all"]) == {"second", "misplaced", "clutter"}
     assert set(report["ablation"]) == {"all", *conditions}
     assert set(report["ablation"]["radar-only"]) == {"none", "no_rgb", "no_thermal", "no_radar", "rgb_only"}
     assert report["frames"]["radar-only"] == 2 and report["frames"]["all"] == 14  # 7 scenarios x 2 instants
@@ -130,6 +132,27 @@ def test_recall_by_height_bins_people_by_their_share_of_the_frame() -> None:
         "0.4-0.7": [0, 1],  # 150 px: boxed, but at 0.2 < the daemon's 0.25
         ">=0.7": [1, 1],  # 300 px: IoU 0.53 >= 0.5 counts
     }
+
+
+def test_false_boxes_are_split_into_second_misplaced_and_clutter() -> None:
+    from respecd.lab.detector.metrics import ImageResult, false_box_kinds
+
+    people = np.array([[0, 0, 40, 100], [200, 0, 240, 100], [400, 0, 440, 100]], np.float32)
+    boxes = np.array([
+        [0, 0, 40, 100],  # finds person 0
+        [20, 0, 60, 100],  # same height, half a width aside: IoU 1/3 with person 0, already found -> second
+        [215, 0, 255, 100],  # IoU 0.45 with person 1, whom nothing finds -> misplaced
+        [600, 0, 640, 100],  # on nobody -> clutter
+        [300, 0, 340, 100],  # also on nobody, but under the threshold: not counted
+        [400, 0, 440, 100],  # on the ignored person 2: neither a hit nor a false box
+    ], np.float32)
+    scores = np.array([0.9, 0.8, 0.7, 0.6, 0.2, 0.9])
+    image = ImageResult(boxes, scores, people, np.array([False, False, True]))
+    assert false_box_kinds([image], 0.25) == {"second": 1, "misplaced": 1, "clutter": 1}
+    # the weaker of two boxes on one person is the second, whichever comes first in the list
+    swapped = ImageResult(boxes[[1, 0]], np.array([0.5, 0.9]), people[:1])
+    assert false_box_kinds([swapped], 0.25) == {"second": 1, "misplaced": 0, "clutter": 0}
+    assert false_box_kinds([ImageResult(boxes[3:4], scores[3:4], np.zeros((0, 4)))], 0.25)["clutter"] == 1
 
 
 def test_eval_command_rejects_a_negative_world_seed(capsys) -> None:

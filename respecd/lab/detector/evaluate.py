@@ -29,7 +29,7 @@ import numpy as np
 import torch
 
 from respecd.lab.detector.data import Sample
-from respecd.lab.detector.metrics import ImageResult, iou_matrix, mean_ap
+from respecd.lab.detector.metrics import ImageResult, false_box_kinds, iou_matrix, mean_ap
 from respecd.perception.attribution import Attributor
 from respecd.perception.boxes import pad_to_stride, postprocess
 from respecd.perception.config import PerceptionConfig
@@ -148,6 +148,7 @@ class Evaluation:
                 "levels": dict(zip((f"P{int(np.log2(s))}" for s in STRIDES), self.levels[size].tolist(), strict=True)),
                 "tallest_detection_px": round(self.tallest[size], 1),
                 "recall_by_height": {c: recall_by_height(images, int(size.split("x")[1])) for c, images in by.items()},
+                "false_boxes": {c: false_box_kinds(images, OPERATING_THRESHOLD) for c, images in by.items()},
             }
         cfg = self.detector.config
         return {

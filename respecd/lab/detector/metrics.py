@@ -42,10 +42,10 @@ def iou_matrix(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return inter / (area_a[:, None] + area_b[None, :] - inter + 1e-9)
 
 
-def _match(image: ImageResult, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Scores, true-positive flags and keep flags (False = matched an ignored box) for one image."""
+def _greedy(image: ImageResult, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Detection order (highest score first), true-positive and keep flags (False = matched an ignored
+    box) in that order, and which ground-truth boxes a detection took."""
     order = np.argsort(-image.pred_scores, kind="stable")
-    scores = image.pred_scores[order]
     ious = iou_matrix(image.pred_boxes[order], image.gt_boxes)
     taken = np.zeros(len(image.gt_boxes), dtype=bool)
     tp = np.zeros(len(order), dtype=bool)
@@ -61,7 +61,41 @@ def _match(image: ImageResult, threshold: float) -> tuple[np.ndarray, np.ndarray
             continue
         if np.any(image.gt_ignore & (ious[i] >= threshold)):
             keep[i] = False
-    return scores, tp, keep
+    return order, tp, keep, taken
+
+
+def _match(image: ImageResult, threshold: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Scores, true-positive flags and keep flags (False = matched an ignored box) for one image."""
+    order, tp, keep, _ = _greedy(image, threshold)
+    return image.pred_scores[order], tp, keep
+
+
+FALSE_BOX_KINDS = ("second", "misplaced", "clutter")
+
+
+def false_box_kinds(images: list[ImageResult], score_threshold: float, near: float = 0.1) -> dict[str, int]:
+    """What the false positives at ``score_threshold`` are, matched as AP@0.5 matches them: a *second* box on
+    a person another box already found, a *misplaced* box on a person no box found (IoU in [near, 0.5)), or
+    *clutter* (IoU < near with every person). Each kind has its own cure (NMS or training against duplicates,
+    box regression, background), so the split says where a resolution loses its precision."""
+    counts = dict.fromkeys(FALSE_BOX_KINDS, 0)
+    for image in images:
+        strong = image.pred_scores >= score_threshold
+        kept = ImageResult(image.pred_boxes[strong], image.pred_scores[strong], image.gt_boxes, image.gt_ignore)
+        order, tp, keep, taken = _greedy(kept, 0.5)
+        false = order[~tp & keep]
+        real = ~kept.gt_ignore
+        if not len(false):
+            continue
+        if not real.any():
+            counts["clutter"] += len(false)
+            continue
+        ious = iou_matrix(kept.pred_boxes[false], kept.gt_boxes[real])
+        best = ious.argmax(1)
+        for overlap, person in zip(ious.max(1), best, strict=True):
+            kind = "clutter" if overlap < near else "second" if taken[real][person] else "misplaced"
+            counts[kind] += 1
+    return counts
 
 
 def ap_parts(images: list[ImageResult], threshold: float) -> tuple[np.ndarray, np.ndarray, int]:
