@@ -37,11 +37,13 @@ bench: install
 bench-peers: install
 	$(BIN)/pip install --quiet --no-deps ultralytics==8.4.190 torchvision==0.28.0
 
-# builtin:sim-rover in six stages (docs/PERCEPTION.md "The shipped checkpoint"): from scratch, a fine-tune on the
+# builtin:sim-rover in nine stages (docs/PERCEPTION.md "The shipped checkpoint"): from scratch, a fine-tune on the
 # daylight-crossover world, then four fine-tunes where cut people stay targets (--keep-cut 0.4), strips zoom to
-# 1.8-2x (near, frame-cut people whole) and radar-only scenes come more often. ~6450 CPU-s in all (the shipped
-# base stage was trained before daylight crossover: equivalent, not bit-identical).
+# 1.8-2x (near, frame-cut people whole) and radar-only scenes come more often; then three where each RGB size has
+# its own strip zoom and 640x360 / 1280x720 strips are drawn more often. ~9200 CPU-s in all (the shipped base
+# stage was trained before daylight crossover: equivalent, not bit-identical).
 STRIPS := --keep-cut 0.4 --radar-alone 0.18
+SIZE_ZOOMS := --strip-zoom 0.7,2.0 --strip-zoom 640x360=0.8,1.25 --strip-zoom 960x540=0.7,1.6
 weights: install
 	mkdir -p build
 	$(BIN)/respecd train --data sim --out build/sim-rover-base.pt --eval-frames 0
@@ -55,8 +57,17 @@ weights: install
 	  --strip-zoom 0.7,2.0 --scenario-weight behind-curtain=4,occlusion-partial=3 --out build/sim-rover-cut3.pt \
 	  --eval-frames 0
 	$(BIN)/respecd train --data sim --init build/sim-rover-cut3.pt --epochs 8 --lr 0.0004 $(STRIPS) \
-	  --strip-zoom 0.7,2.0 --scenario-weight behind-curtain=4,occlusion-partial=3 \
-	  --out respecd/perception/weights/sim-rover.pt
+	  --strip-zoom 0.7,2.0 --scenario-weight behind-curtain=4,occlusion-partial=3 --out build/sim-rover-cut4.pt \
+	  --eval-frames 0
+	$(BIN)/respecd train --data sim --init build/sim-rover-cut4.pt --epochs 6 --lr 0.0003 $(STRIPS) $(SIZE_ZOOMS) \
+	  --scenario-weight behind-curtain=4,occlusion-partial=3 --resolution-weight 640x360=3 \
+	  --out build/sim-rover-zoom1.pt --eval-frames 0
+	$(BIN)/respecd train --data sim --init build/sim-rover-zoom1.pt --epochs 3 --lr 0.0002 $(STRIPS) $(SIZE_ZOOMS) \
+	  --scenario-weight behind-curtain=4,occlusion-partial=3 --resolution-weight 640x360=2,1280x720=2 \
+	  --out build/sim-rover-zoom2.pt --eval-frames 0
+	$(BIN)/respecd train --data sim --init build/sim-rover-zoom2.pt --epochs 3 --steps 200 --lr 0.0002 --seed 1 \
+	  $(STRIPS) $(SIZE_ZOOMS) --scenario-weight behind-curtain=4,occlusion-partial=3 \
+	  --resolution-weight 640x360=2,1280x720=3 --out respecd/perception/weights/sim-rover.pt
 
 # builtin:rgbt (configs/spec-rover.yaml): Yolo-Fastest 1.1 body (RGB backbone and head, as trained on real photos)
 # with Yolo-Fastest xl's backbone on thermal at half resolution; only the 1x1 convolutions mapping xl's features

@@ -95,6 +95,7 @@ def test_train_recipe_flags_reach_the_training_config(tmp_path: Path, capsys) ->
     assert code == 0
     train = json.loads(out.with_suffix(".json").read_text())["train"]
     assert train["augment"]["zoom"] == [0.7, 1.8] and train["augment"]["keep_cut"] == 0.4
+    assert train["lr"] == 0.002  # the default peak learning rate, recorded so a stage can be re-run
     assert train["augment"]["zoom_at"] == [[[640, 360], [0.9, 1.1]]]
     assert [list(s) for s, w in train["augment"]["keep"] if w == 0.2] == [["radar"]]
     weights = train["scenario_weights"]

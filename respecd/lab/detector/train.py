@@ -198,6 +198,7 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
         "epochs": cfg.epochs,
         "steps": total,
         "batch": cfg.sim_batch if cfg.data == "sim" else cfg.batch,
+        "lr": cfg.lr,  # the peak; with init and seed, what a later stage needs to be reproduced
         "pool": None if cfg.data == "sim" else len(pool),
         "train_size": "strips 320 wide, full frame height" if cfg.data == "sim" else list(cfg.augment.size),
         "train_s": round(time.perf_counter() - started, 1),
