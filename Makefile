@@ -40,7 +40,7 @@ bench-peers: install
 # builtin:sim-rover in nine stages (docs/PERCEPTION.md "The shipped checkpoint"): from scratch, a fine-tune on the
 # daylight-crossover world, then four fine-tunes where cut people stay targets (--keep-cut 0.4), strips zoom to
 # 1.8-2x (near, frame-cut people whole) and radar-only scenes come more often; then three where each RGB size has
-# its own strip zoom and 640x360 / 1280x720 strips are drawn more often. ~9200 CPU-s in all (the shipped base
+# its own strip zoom and 640x360 / 1280x720 strips are drawn more often. ~9240 CPU-s in all (the shipped base
 # stage was trained before daylight crossover: equivalent, not bit-identical).
 STRIPS := --keep-cut 0.4 --radar-alone 0.18
 SIZE_ZOOMS := --strip-zoom 0.7,2.0 --strip-zoom 640x360=0.8,1.25 --strip-zoom 960x540=0.7,1.6
