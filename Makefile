@@ -43,6 +43,7 @@ bench-peers: install
 # its own strip zoom and 640x360 / 1280x720 strips are drawn more often. ~9240 CPU-s in all (the shipped base
 # stage was trained before daylight crossover: equivalent, not bit-identical).
 STRIPS := --keep-cut 0.4 --radar-alone 0.18
+CURTAIN_AND_CUT := --scenario-weight behind-curtain=4,occlusion-partial=3
 SIZE_ZOOMS := --strip-zoom 0.7,2.0 --strip-zoom 640x360=0.8,1.25 --strip-zoom 960x540=0.7,1.6
 weights: install
 	mkdir -p build
@@ -54,19 +55,19 @@ weights: install
 	$(BIN)/respecd train --data sim --init build/sim-rover-cut1.pt --epochs 8 --lr 0.0007 $(STRIPS) \
 	  --strip-zoom 0.7,2.0 --scenario-weight behind-curtain=4 --out build/sim-rover-cut2.pt --eval-frames 0
 	$(BIN)/respecd train --data sim --init build/sim-rover-cut2.pt --epochs 8 --lr 0.0005 $(STRIPS) \
-	  --strip-zoom 0.7,2.0 --scenario-weight behind-curtain=4,occlusion-partial=3 --out build/sim-rover-cut3.pt \
+	  --strip-zoom 0.7,2.0 $(CURTAIN_AND_CUT) --out build/sim-rover-cut3.pt \
 	  --eval-frames 0
 	$(BIN)/respecd train --data sim --init build/sim-rover-cut3.pt --epochs 8 --lr 0.0004 $(STRIPS) \
-	  --strip-zoom 0.7,2.0 --scenario-weight behind-curtain=4,occlusion-partial=3 --out build/sim-rover-cut4.pt \
+	  --strip-zoom 0.7,2.0 $(CURTAIN_AND_CUT) --out build/sim-rover-cut4.pt \
 	  --eval-frames 0
 	$(BIN)/respecd train --data sim --init build/sim-rover-cut4.pt --epochs 6 --lr 0.0003 $(STRIPS) $(SIZE_ZOOMS) \
-	  --scenario-weight behind-curtain=4,occlusion-partial=3 --resolution-weight 640x360=3 \
+	  $(CURTAIN_AND_CUT) --resolution-weight 640x360=3 \
 	  --out build/sim-rover-zoom1.pt --eval-frames 0
 	$(BIN)/respecd train --data sim --init build/sim-rover-zoom1.pt --epochs 3 --lr 0.0002 $(STRIPS) $(SIZE_ZOOMS) \
-	  --scenario-weight behind-curtain=4,occlusion-partial=3 --resolution-weight 640x360=2,1280x720=2 \
+	  $(CURTAIN_AND_CUT) --resolution-weight 640x360=2,1280x720=2 \
 	  --out build/sim-rover-zoom2.pt --eval-frames 0
 	$(BIN)/respecd train --data sim --init build/sim-rover-zoom2.pt --epochs 3 --steps 200 --lr 0.0002 --seed 1 \
-	  $(STRIPS) $(SIZE_ZOOMS) --scenario-weight behind-curtain=4,occlusion-partial=3 \
+	  $(STRIPS) $(SIZE_ZOOMS) $(CURTAIN_AND_CUT) \
 	  --resolution-weight 640x360=2,1280x720=3 --out respecd/perception/weights/sim-rover.pt
 
 # builtin:rgbt (configs/spec-rover.yaml): Yolo-Fastest 1.1 body (RGB backbone and head, as trained on real photos)

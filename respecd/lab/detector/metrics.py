@@ -82,7 +82,7 @@ def false_box_kinds(images: list[ImageResult], score_threshold: float, near: flo
     for image in images:
         strong = image.pred_scores >= score_threshold
         kept = ImageResult(image.pred_boxes[strong], image.pred_scores[strong], image.gt_boxes, image.gt_ignore)
-        order, tp, keep, taken = _greedy(kept, 0.5)
+        order, tp, keep, taken = _greedy(kept, IOU_THRESHOLDS[0])
         false = order[~tp & keep]
         real = ~kept.gt_ignore
         if not len(false):
@@ -91,10 +91,11 @@ def false_box_kinds(images: list[ImageResult], score_threshold: float, near: flo
             counts["clutter"] += len(false)
             continue
         ious = iou_matrix(kept.pred_boxes[false], kept.gt_boxes[real])
-        best = ious.argmax(1)
-        for overlap, person in zip(ious.max(1), best, strict=True):
-            kind = "clutter" if overlap < near else "second" if taken[real][person] else "misplaced"
-            counts[kind] += 1
+        clutter = ious.max(1) < near
+        found = taken[real][ious.argmax(1)]
+        counts["second"] += int((~clutter & found).sum())
+        counts["misplaced"] += int((~clutter & ~found).sum())
+        counts["clutter"] += int(clutter.sum())
     return counts
 
 
