@@ -28,6 +28,7 @@ import structlog
 from respecd.drivers.base import Capabilities, Driver, clamp_request
 from respecd.errors import DriverError, DriverIOError, DriverTimeoutError, DriverUnavailableError
 from respecd.messages import Frame, SensorConfig
+from respecd.timeouts import within
 
 log = structlog.get_logger(__name__)
 
@@ -102,7 +103,7 @@ class Handoff:
                     item = self._items.popleft()
                     self._cond.notify()
                     return item
-            await asyncio.wait_for(self._ready.wait(), timeout)
+            await within(self._ready.wait(), timeout)
 
     def close(self) -> None:
         """Wake a producer blocked on a full handoff."""

@@ -48,6 +48,7 @@ from respecd.radar.cli_port import CliPort, CliRejectedError
 from respecd.radar.data_port import INTER_BYTE_TIMEOUT_S, DataPortReader
 from respecd.radar.health import OutageLog
 from respecd.radar.parser import MmwParser, Packet, RadarPacket
+from respecd.timeouts import within
 
 log = structlog.get_logger(__name__)
 
@@ -276,7 +277,7 @@ class IWR6843Driver(Driver):
     async def _cli_call(self, fn: Any, *args: Any, lines: int = 1) -> Any:
         """Run a blocking CLI call in a worker thread, bounded by the per-line timeouts."""
         per_line = self.config.cli_timeout_s * 4 * (self.config.cli_retries + 1)  # x4: sensorStart is slow
-        return await asyncio.wait_for(asyncio.to_thread(fn, *args), timeout=per_line * lines + 1.0)
+        return await within(asyncio.to_thread(fn, *args), per_line * lines + 1.0)
 
     async def _connect(self) -> None:
         """Open both ports, wake the CLI, start the data reader. DriverUnavailableError if absent."""
@@ -285,7 +286,7 @@ class IWR6843Driver(Driver):
                 raise DriverUnavailableError(f"radar {self.name}: {port} is absent (board unplugged?)")
         opening = asyncio.ensure_future(asyncio.to_thread(self._open_ports))
         try:
-            self._ports = await asyncio.wait_for(asyncio.shield(opening), self.config.open_timeout_s)
+            self._ports = await within(asyncio.shield(opening), self.config.open_timeout_s)
         except BaseException as err:  # timeout or cancel: close the ports if the open completes later
             opening.add_done_callback(_close_opened)
             if isinstance(err, (OSError, TimeoutError)):
@@ -322,7 +323,7 @@ class IWR6843Driver(Driver):
             await asyncio.to_thread(reader.stop, self.config.open_timeout_s)
         for port in ports:
             with contextlib.suppress(OSError, TimeoutError):
-                await asyncio.wait_for(asyncio.to_thread(port.close), self.config.open_timeout_s)
+                await within(asyncio.to_thread(port.close), self.config.open_timeout_s)
 
     def _on_packets(self, packets: list[Packet]) -> None:
         """On the loop: packets from the reader thread become Frames."""
@@ -377,7 +378,7 @@ class IWR6843Driver(Driver):
         """Recover when the data port fails, goes silent, or a reconfiguration failed."""
         while self._running:
             try:
-                await asyncio.wait_for(self._failed.wait(), timeout=0.25)
+                await within(self._failed.wait(), 0.25)
             except TimeoutError:
                 if not self._stalled():
                     continue

@@ -38,6 +38,7 @@ from respecd.sdnotify import Notifier
 from respecd.status import format_line, snapshot
 from respecd.supervisor import driver_runner, supervise
 from respecd.sync import HealthThresholds, Synchronizer
+from respecd.timeouts import within
 
 log = structlog.get_logger(__name__)
 
@@ -281,7 +282,7 @@ class Session:
         try:
             result = close()
             if asyncio.iscoroutine(result):
-                await asyncio.wait_for(result, timeout=timeout)
+                await within(result, timeout)
         except Exception as err:  # one component failing to close must not keep the others open
             self.errors.append(f"{name}: {err!r}")
             log.exception("close_failed", component=name)

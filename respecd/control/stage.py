@@ -34,6 +34,7 @@ from respecd.errors import DriverError
 from respecd.messages import Decision, Percept, SensorConfig
 from respecd.queues import DropOldestQueue
 from respecd.sensors import Capabilities
+from respecd.timeouts import within
 
 log = structlog.get_logger(__name__)
 
@@ -70,7 +71,7 @@ class DriverSensors:
 
     async def _apply_one(self, name: str, request: SensorConfig) -> SensorConfig | None:
         try:
-            applied = await asyncio.wait_for(self.drivers[name].apply(request), self.timeout_s)
+            applied = await within(self.drivers[name].apply(request), self.timeout_s)
         except (DriverError, asyncio.TimeoutError) as err:
             log.warning("apply_failed", sensor=name, error=repr(err))
             return None

@@ -1,0 +1,67 @@
+"""respecd.timeouts.within: a timeout that lets every cancellation through (docs in the module)."""
+
+from __future__ import annotations
+
+import asyncio
+
+import pytest
+
+from respecd.timeouts import within
+
+
+async def _cancel_as_it_completes(finish) -> asyncio.Task:
+    """Cancel a task waiting in ``within`` in the same loop iteration as its work finishes."""
+    work = asyncio.get_running_loop().create_future()
+    task = asyncio.create_task(within(work, 5.0))
+    await asyncio.sleep(0)  # the task now waits on ``work``
+    finish(work)
+    task.cancel()
+    await asyncio.wait({task})
+    return task
+
+
+async def test_a_cancel_that_lands_as_the_work_returns_is_not_lost() -> None:
+    task = await _cancel_as_it_completes(lambda work: work.set_result("answered"))
+    assert task.cancelled()  # Python 3.11's wait_for returns "answered" here
+
+
+async def test_a_cancel_that_lands_as_the_work_fails_is_not_turned_into_its_error() -> None:
+    """The radar case: sensorStart rejected as the supervisor is cancelled must not look like a failure to retry."""
+    task = await _cancel_as_it_completes(lambda work: work.set_exception(ConnectionError("Error -1")))
+    assert task.cancelled()  # Python 3.11's wait_for raises the ConnectionError here
+
+
+async def test_the_result_and_the_error_of_work_come_through() -> None:
+    async def answer() -> int:
+        return 7
+
+    async def fail() -> None:
+        raise ValueError("bad reply")
+
+    assert await within(answer(), 1.0) == 7
+    with pytest.raises(ValueError, match="bad reply"):
+        await within(fail(), 1.0)
+
+
+async def test_a_timeout_cancels_the_work_and_lets_it_unwind() -> None:
+    unwound = asyncio.Event()
+
+    async def slow() -> None:
+        try:
+            await asyncio.sleep(10)
+        finally:
+            unwound.set()
+
+    with pytest.raises(asyncio.TimeoutError):
+        await within(slow(), 0.05)
+    assert unwound.is_set()
+
+
+async def test_the_caller_cancelled_while_waiting_cancels_the_work() -> None:
+    work = asyncio.ensure_future(asyncio.sleep(10))
+    task = asyncio.create_task(within(work, 5.0))
+    await asyncio.sleep(0.01)
+    task.cancel()
+    await asyncio.wait({task})
+    await asyncio.sleep(0)
+    assert task.cancelled() and work.cancelled()
