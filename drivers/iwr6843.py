@@ -48,7 +48,7 @@ from respecd.radar.cli_port import CliPort, CliRejectedError
 from respecd.radar.data_port import INTER_BYTE_TIMEOUT_S, DataPortReader
 from respecd.radar.health import OutageLog
 from respecd.radar.parser import MmwParser, Packet, RadarPacket
-from respecd.timeouts import within
+from respecd.timeouts import reap, within
 
 log = structlog.get_logger(__name__)
 
@@ -168,9 +168,7 @@ class IWR6843Driver(Driver):
             return
         self._running = False
         if self._watch_task is not None:
-            self._watch_task.cancel()
-            with contextlib.suppress(asyncio.CancelledError):
-                await self._watch_task
+            await reap(self._watch_task)
             self._watch_task = None
         async with self._lock:
             if self._cli is not None and self.profile is not None:

@@ -7,6 +7,8 @@ fixed in 3.12). A cancelled stage then carries on: the supervisor of a radar who
 of stopping, and a driver's watch task that misses its cancel keeps ``stop()`` — and SIGTERM —
 waiting. ``within`` waits with ``asyncio.wait``, which always lets the caller's cancellation
 through. ``asyncio.wait_for`` is banned in respecd/ and drivers/ by the lint (pyproject.toml).
+``reap`` is the same care for the other common way to lose one: ``with suppress(CancelledError):
+await child`` after ``child.cancel()`` also swallows a cancellation of the caller.
 """
 
 from __future__ import annotations
@@ -33,3 +35,11 @@ async def within(work: Awaitable[T], timeout: float | None) -> T:
         await asyncio.wait({inner})  # not ``await inner``: that would swallow our own cancellation
         raise asyncio.TimeoutError(f"no result within {timeout:g} s")
     return inner.result()
+
+
+async def reap(task: asyncio.Task[object]) -> None:
+    """Cancel ``task`` and wait until it has ended, whatever it ends with (its error is its own
+    business: a watch loop being stopped). Unlike awaiting it under ``suppress(CancelledError)``,
+    a cancellation of the caller while ``task`` unwinds still reaches the caller."""
+    task.cancel()
+    await asyncio.wait({task})

@@ -6,7 +6,7 @@ import asyncio
 
 import pytest
 
-from respecd.timeouts import within
+from respecd.timeouts import reap, within
 
 
 async def _cancel_as_it_completes(finish) -> asyncio.Task:
@@ -65,3 +65,35 @@ async def test_the_caller_cancelled_while_waiting_cancels_the_work() -> None:
     await asyncio.wait({task})
     await asyncio.sleep(0)
     assert task.cancelled() and work.cancelled()
+
+
+async def test_reap_ends_the_task_and_lets_the_callers_cancel_through() -> None:
+    """A watch task that takes a moment to unwind; the caller is cancelled meanwhile (a stop that overran)."""
+    unwinding = asyncio.Event()
+
+    async def watch() -> None:
+        try:
+            await asyncio.sleep(10)
+        finally:
+            unwinding.set()
+            await asyncio.sleep(0.05)
+
+    child = asyncio.create_task(watch())
+    await asyncio.sleep(0)
+    caller = asyncio.create_task(reap(child))
+    await unwinding.wait()
+    caller.cancel()
+    await asyncio.wait({caller})
+    assert caller.cancelled()  # `with suppress(CancelledError): await child` returns normally here
+    await asyncio.wait({child})
+    assert child.cancelled()
+
+
+async def test_reap_of_a_task_that_failed_does_not_raise() -> None:
+    async def broken() -> None:
+        raise OSError("port gone")
+
+    child = asyncio.create_task(broken())
+    await asyncio.sleep(0)
+    await reap(child)
+    assert isinstance(child.exception(), OSError)
