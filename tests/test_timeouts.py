@@ -1,4 +1,4 @@
-"""respecd.timeouts.within: a timeout that lets every cancellation through (docs in the module)."""
+"""respecd.timeouts: a timeout and a task reaper that let every cancellation through (docs in the module)."""
 
 from __future__ import annotations
 
