@@ -43,17 +43,19 @@ async def test_the_result_and_the_error_of_work_come_through() -> None:
         await within(fail(), 1.0)
 
 
+async def _sleep_until_cancelled(unwinding: asyncio.Event, unwind_s: float = 0.0) -> None:
+    """Work that only ends by cancellation, sets ``unwinding`` and then takes ``unwind_s`` to clean up."""
+    try:
+        await asyncio.sleep(10)
+    finally:
+        unwinding.set()
+        await asyncio.sleep(unwind_s)
+
+
 async def test_a_timeout_cancels_the_work_and_lets_it_unwind() -> None:
     unwound = asyncio.Event()
-
-    async def slow() -> None:
-        try:
-            await asyncio.sleep(10)
-        finally:
-            unwound.set()
-
     with pytest.raises(asyncio.TimeoutError):
-        await within(slow(), 0.05)
+        await within(_sleep_until_cancelled(unwound), 0.05)
     assert unwound.is_set()
 
 
@@ -70,15 +72,7 @@ async def test_the_caller_cancelled_while_waiting_cancels_the_work() -> None:
 async def test_reap_ends_the_task_and_lets_the_callers_cancel_through() -> None:
     """A watch task that takes a moment to unwind; the caller is cancelled meanwhile (a stop that overran)."""
     unwinding = asyncio.Event()
-
-    async def watch() -> None:
-        try:
-            await asyncio.sleep(10)
-        finally:
-            unwinding.set()
-            await asyncio.sleep(0.05)
-
-    child = asyncio.create_task(watch())
+    child = asyncio.create_task(_sleep_until_cancelled(unwinding, unwind_s=0.05))
     await asyncio.sleep(0)
     caller = asyncio.create_task(reap(child))
     await unwinding.wait()
