@@ -65,6 +65,47 @@ def test_one_epoch_on_llvip_layout_then_resume(llvip_tiny: Path, tmp_path: Path)
     assert unchanged == (second["best_epoch"] == 1)
 
 
+def test_bf16_training_keeps_fp32_weights_and_a_loss_close_to_fp32(llvip_tiny: Path, tmp_path: Path) -> None:
+    from respecd.lab.detector.finetune import initial_model
+    from respecd.lab.detector.train import _as_float, net_loss
+
+    pcfg = PerceptionConfig(model=TINY)
+    torch.manual_seed(0)
+    model = initial_model(None, pcfg.model).train()
+    samples = [augment(LlvipSource(llvip_tiny, pcfg, scale=0.25), np.random.default_rng(i), AugmentConfig(
+        size=(128, 96)), pcfg.model.aux_modalities) for i in range(4)]
+    x, presence, boxes, labels, mask = collate(samples)
+    full, _ = net_loss(model, model(x, presence), (96, 128), boxes, labels, mask)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        raw = model(x, presence)
+    half, _ = net_loss(model, _as_float(raw), (96, 128), boxes, labels, mask)
+    assert half.dtype == torch.float32 and torch.isfinite(half)
+    full_v, half_v = float(full.detach()), float(half.detach())
+    assert abs(half_v - full_v) < 0.05 * full_v  # bf16 keeps ~3 significant digits
+
+    out = tmp_path / "bf16.pt"
+    summary = train(TrainConfig(data=str(llvip_tiny), out=out, epochs=1, batch=2, steps_per_epoch=2, threads=1,
+                                progress=False, augment=AugmentConfig(size=(128, 96)), precision="bf16"), pcfg)
+    assert summary["precision"] == "bf16"
+    trained = checkpoint.load(str(out), expected=TINY)[0].state_dict()
+    assert all(v.dtype in (torch.float32, torch.int64) for v in trained.values())
+    torch.manual_seed(0)  # train() seeds torch with cfg.seed (0) before it builds the net
+    start = initial_model(None, pcfg.model).state_dict()
+    assert any(not torch.equal(a, b) for a, b in zip(start.values(), trained.values(), strict=True))
+
+
+def test_batches_of_an_epoch_do_not_depend_on_the_epochs_before_it() -> None:
+    """What --resume relies on: epoch 2 alone draws what epoch 2 drew after epoch 1."""
+    from respecd.lab.detector.train import draw_batches
+
+    class Draws:
+        def draw(self, rng: np.random.Generator) -> float:
+            return float(rng.random())
+
+    both = list(draw_batches(Draws(), 7, 0, 2, 3))
+    assert list(draw_batches(Draws(), 7, 1, 2, 3)) == both[3:] and both[:3] != both[3:]
+
+
 def test_train_command_on_the_simulator(tmp_path: Path, capsys) -> None:
     out = tmp_path / "sim.pt"
     code = cli_main(["train", "--data", "sim", "--out", str(out), "--epochs", "1", "--steps", "1", "--batch", "2",

@@ -10,6 +10,7 @@ BENCHES: dict[str, str] = {
     "pipeline": "respecd.lab.bench.pipeline",
     "drivers": "respecd.lab.bench.drivers",
     "inference": "respecd.lab.bench.inference",
+    "training": "respecd.lab.bench.training",
     "controller": "respecd.lab.bench.controller",
     "scenarios": "respecd.lab.bench.scenarios",
     "sim": "respecd.lab.bench.sim",

@@ -14,6 +14,7 @@ from __future__ import annotations
 import copy
 import math
 import time
+from collections.abc import Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -33,6 +34,7 @@ from respecd.perception.config import PerceptionConfig
 from respecd.perception.darknet_fusion import DarknetFusionNet
 
 if TYPE_CHECKING:
+    from respecd.lab.detector.data import Sample
     from respecd.lab.detector.simdata import SimStream
 
 log = structlog.get_logger(__name__)
@@ -63,6 +65,18 @@ class TrainConfig:
     scenario_weights: dict[str, float] | None = None  # sim: draw weights (None: simdata.SCENARIO_WEIGHTS)
     resolution_weights: dict[tuple[int, int], float] | None = None  # sim: RGB size draw weights (None: uniform)
     sim_mix: float = 0.0  # folder data: share of steps drawn from the simulator instead (0: folder only)
+    precision: str = "fp32"  # "bf16": forward and backward under CPU autocast (weights and loss stay fp32)
+
+
+Batch = tuple[list["Sample"], tuple[int, int]]  # one step's samples, (width, height) of its input
+
+
+def draw_batches(pool, seed: int, first_epoch: int, epochs: int, steps: int) -> Iterator[Batch]:
+    """Every step's batch, epoch by epoch; one generator per epoch, so a resumed run replays the same batches."""
+    for epoch in range(first_epoch, epochs):
+        rng = np.random.default_rng([seed, epoch, 11])
+        for _ in range(steps):
+            yield pool.draw(rng)
 
 
 class EMA:
@@ -179,18 +193,8 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
     total = steps * cfg.epochs
     resume_path = cfg.out.with_name(cfg.out.name + ".resume")  # not *.pt: never packaged as weights
     first_epoch, curve = _maybe_resume(resume_path, cfg, model, ema, opt)
-    for epoch in range(first_epoch, cfg.epochs):
-        loss = _epoch(model, ema, opt, pool, cfg, epoch, steps, total)
-        score = validation_map(ema.model, val) if val is not None and len(val) else None
-        curve.append({"epoch": epoch + 1, "loss": round(loss, 4), "val_map50": finite(score)})
-        if _is_best(curve):
-            checkpoint.save(cfg.out, ema.model, {"data": cfg.data, "epoch": epoch + 1})
-        checkpoint.save(resume_path, model, {"ema": ema.model.state_dict(), "optimizer": opt.state_dict(),
-                                             "epoch": epoch + 1, "ema_updates": ema.updates, "curve": curve})
-        log.info("epoch_done", epoch=epoch + 1, of=cfg.epochs, loss=round(loss, 4), val_map50=finite(score))
-        if _stale(curve, cfg.patience):
-            log.info("early_stop", epoch=epoch + 1, patience=cfg.patience)
-            break
+    batches = draw_batches(pool, cfg.seed, first_epoch, cfg.epochs, steps)
+    curve = _train_epochs(model, ema, opt, batches, val, cfg, first_epoch, steps, curve, resume_path)
     best = _best_epoch(curve)
     sim = pool if cfg.data == "sim" else pool.sim if isinstance(pool, MixedSource) else None  # whose draw weights
     summary = {
@@ -206,6 +210,8 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
         "seed": cfg.seed,
         "augment": asdict(cfg.augment),
         "sim_mix": cfg.sim_mix,
+        "precision": cfg.precision,
+        "threads": cfg.threads,
         "scenario_weights": sim.weights if sim is not None else None,
         "resolution_weights": sim.resolution_weights if sim is not None else None,
         "epoch_loss": [(r["epoch"], r["loss"]) for r in curve],  # for the CLI's curve
@@ -218,6 +224,25 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
     checkpoint.save(cfg.out, final, {"data": cfg.data, "train": summary})
     summary["out"] = str(cfg.out)
     return summary
+
+
+def _train_epochs(model: checkpoint.Net, ema: EMA, opt: torch.optim.Optimizer, batches: Iterator[Batch], val,
+                  cfg: TrainConfig, first_epoch: int, steps: int, curve: list[dict], resume_path: Path) -> list[dict]:
+    """Epochs from ``first_epoch`` on: train, score on ``val``, save the best and a resume file; early stop."""
+    total = steps * cfg.epochs
+    for epoch in range(first_epoch, cfg.epochs):
+        loss = _epoch(model, ema, opt, batches, cfg, epoch, steps, total)
+        score = validation_map(ema.model, val) if val is not None and len(val) else None
+        curve.append({"epoch": epoch + 1, "loss": round(loss, 4), "val_map50": finite(score)})
+        if _is_best(curve):
+            checkpoint.save(cfg.out, ema.model, {"data": cfg.data, "epoch": epoch + 1})
+        checkpoint.save(resume_path, model, {"ema": ema.model.state_dict(), "optimizer": opt.state_dict(),
+                                             "epoch": epoch + 1, "ema_updates": ema.updates, "curve": curve})
+        log.info("epoch_done", epoch=epoch + 1, of=cfg.epochs, loss=round(loss, 4), val_map50=finite(score))
+        if _stale(curve, cfg.patience):
+            log.info("early_stop", epoch=epoch + 1, patience=cfg.patience)
+            break
+    return curve
 
 
 def net_loss(model: checkpoint.Net, raw, input_hw: tuple[int, int], gt_boxes: torch.Tensor, gt_labels: torch.Tensor,
@@ -260,26 +285,44 @@ def _maybe_resume(path: Path, cfg: TrainConfig, model: checkpoint.Net, ema: EMA,
     return int(payload["epoch"]), list(payload.get("curve", []))
 
 
-def _epoch(model: checkpoint.Net, ema: EMA, opt: torch.optim.Optimizer, pool, cfg: TrainConfig, epoch: int,
-           steps: int, total: int) -> float:
+def _epoch(model: checkpoint.Net, ema: EMA, opt: torch.optim.Optimizer, batches: Iterator[Batch], cfg: TrainConfig,
+           epoch: int, steps: int, total: int) -> float:
     from respecd.lab.detector.data import progress
 
-    rng = np.random.default_rng([cfg.seed, epoch, 11])  # per epoch: a resumed run replays the same batches
     running = 0.0
+    bf16 = cfg.precision == "bf16"
     bar = progress(range(steps), cfg.progress, desc=f"epoch {epoch + 1}/{cfg.epochs}")
     for i in bar:
         step = epoch * steps + i
         for group in opt.param_groups:
             group["lr"] = lr_at(step, total, cfg.lr)
-        samples, (w, h) = pool.draw(rng)
-        x, presence, boxes, labels, mask = collate(samples)
-        loss, parts = net_loss(model, model(x, presence), (h, w), boxes, labels, mask)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        nn.utils.clip_grad_norm_(model.parameters(), 10.0)
-        opt.step()
-        ema.update(model)
+        loss, parts = train_step(model, opt, ema, next(batches), bf16)
         running = 0.9 * running + 0.1 * float(loss.detach()) if i else float(loss.detach())
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(loss=f"{running:.3f}", box=f"{parts['box']:.3f}", cls=f"{parts['cls']:.3f}")
     return running
+
+
+def train_step(model: checkpoint.Net, opt: torch.optim.Optimizer, ema: EMA, batch: Batch,
+               bf16: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
+    """One optimizer step on one batch (forward under bf16 autocast when asked); the loss and its parts."""
+    samples, (w, h) = batch
+    x, presence, boxes, labels, mask = collate(samples)
+    with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
+        raw = model(x, presence)
+    loss, parts = net_loss(model, _as_float(raw) if bf16 else raw, (h, w), boxes, labels, mask)
+    opt.zero_grad(set_to_none=True)
+    loss.backward()
+    nn.utils.clip_grad_norm_(model.parameters(), 10.0)
+    opt.step()
+    ema.update(model)
+    return loss, parts
+
+
+def _as_float(raw):
+    """The head's outputs back in fp32, so the loss (assignment, IoU, DFL) runs at full precision."""
+    if isinstance(raw, torch.Tensor):
+        return raw.float()
+    if isinstance(raw, (list, tuple)):
+        return type(raw)(_as_float(r) for r in raw)
+    return raw
