@@ -72,6 +72,14 @@ def test_free_bandwidth_ablation_differs_from_sim_rover_only_in_the_bandwidth_we
     assert base_reward["bandwidth"] > 0 and ablation_reward == {**base_reward, "bandwidth": 0.0}
 
 
+def test_per_sensor_candidates_differ_from_their_bases_only_in_the_credit():
+    base_reward, candidate_reward = _ablation_difference("sim-rover-per-sensor", "reward")
+    assert base_reward["credit"] == "shared" and candidate_reward == {**base_reward, "credit": "per-sensor"}
+    _, free = _ablation_difference("sim-rover-free-bandwidth", "reward")
+    _, free_per_sensor = _ablation_difference("sim-rover-per-sensor-free-bandwidth", "reward")
+    assert free_per_sensor == {**free, "credit": "per-sensor"}
+
+
 def test_heavy_bandwidth_candidate_differs_from_sim_rover_only_in_the_bandwidth_weight():
     base_reward, candidate_reward = _ablation_difference("sim-rover-heavy-bandwidth", "reward")
     assert candidate_reward == {**base_reward, "bandwidth": 3 * base_reward["bandwidth"]}

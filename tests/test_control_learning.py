@@ -8,7 +8,7 @@ import pytest
 from respecd.control.actions import ActionSpace, Slot
 from respecd.control.config import ControllerConfig, Learning, RewardWeights, Thresholds
 from respecd.control.controller import Controller
-from respecd.control.qlearning import QTable
+from respecd.control.qlearning import FactoredQTable, QTable
 from respecd.control.reward import reward_terms, sensing_delay, sensor_power
 from respecd.control.state import Observation, StateSpace
 from respecd.messages import SensorConfig
@@ -358,3 +358,64 @@ def test_controller_charges_the_bandwidth_its_configuration_makes() -> None:
     assert reward(0.0, 30.0)["reward"] == reward(0.0, 1.0)["reward"]
     depth = SensorConfig("depth", rate_hz=30.0, resolution=(640, 480))
     assert fast["bandwidth_mb_s"] == pytest.approx(sensing_bandwidth([depth]) / 1e6)
+
+
+def _rgb_and_depth(credit: str, seed: int = 0, bandwidth: float = 0.01) -> Controller:
+    """A factored table over a camera the detector reads and a depth camera it does not."""
+    config = ControllerConfig(
+        factors=("illumination",), contribution="none", min_dwell_s=0.0, seed=seed,
+        reward=RewardWeights(beta=0.05, bandwidth=bandwidth, delta=0.0, gamma=0.0, credit=credit),
+        learning=Learning(init="zero", discount=0.5, epsilon_start=1.0, epsilon_decay=0.99, epsilon_min=0.2),
+    )
+    slots = (Slot("cam", "rgb", ((640, 360),), (5.0,)), Slot("depth", "depth", ((640, 480),), (1.0, 30.0)))
+    powers = {"cam": SensorPower(static_w=1.0, per_hz_w={"default": 0.01}),
+              "depth": SensorPower(static_w=1.2, per_hz_w={"default": 0.04})}
+    return Controller(config, ActionSpace(slots, "factored"), StateSpace(config.factors, Thresholds()), powers,
+                      detector_inputs=("rgb", "thermal", "radar"))
+
+
+def test_per_sensor_rewards_take_out_the_other_sensors_costs() -> None:
+    from respecd.control.reward import per_sensor_rewards
+
+    # reward -1.0 holds the costs -0.3 (read) and -0.5 (not read): the first keeps its own, the second only its own
+    assert per_sensor_rewards(-1.0, [-0.3, -0.5], [True, False]) == pytest.approx([-0.5, -0.5])
+    assert per_sensor_rewards(0.4, [-0.1, -0.2], [True, True]) == pytest.approx([0.6, 0.5])
+
+
+@pytest.mark.parametrize("credit", ["shared", "per-sensor"])
+def test_each_block_learns_from_its_credit(credit: str) -> None:
+    controller = _rgb_and_depth(credit)
+    controller.follow({"cam": SensorConfig("rgb", rate_hz=5.0, resolution=(640, 360)),
+                       "depth": SensorConfig("depth", rate_hz=30.0, resolution=(640, 480))})
+    first = controller.step(Observation(t=0.0, n_percepts=1, illumination=0.8, conf_agg=0.5, busy=0.0))
+    state, action = controller._prev_state, first.action
+    second = controller.step(Observation(t=1.0, n_percepts=1, illumination=0.8, conf_agg=0.5, busy=0.0))
+    depth_cost = -0.05 * (1.2 + 0.04 * 30) - 0.01 * 640 * 480 * 2 * 30 / 1e6
+    cam_cell, depth_cell = controller.table.cells(action)  # type: ignore[union-attr]
+    q = controller.table.q[state]  # type: ignore[union-attr]
+    # zero init, first update of each cell: its value is the reward it was given (the next row is all 0)
+    if credit == "shared":
+        assert q[cam_cell] == pytest.approx(second.reward) and q[1 + depth_cell] == pytest.approx(second.reward)
+    else:
+        assert q[1 + depth_cell] == pytest.approx(depth_cost)
+        assert q[cam_cell] == pytest.approx(second.reward - depth_cost)
+
+
+def _learns_cheapest_depth_rate(credit: str, seed: int) -> bool:
+    """150 decisions with power the only price (bandwidth free): does depth end at 1 Hz?"""
+    rng = np.random.default_rng(seed)
+    controller = _rgb_and_depth(credit, seed=seed, bandwidth=0.0)
+    for step in range(150):  # confidence swings by +-0.4: x0.8, five times depth's 0.058 price difference
+        decision = controller.step(Observation(t=float(step), n_percepts=1, illumination=0.8,
+                                               conf_agg=float(rng.uniform(0.1, 0.9)), busy=0.0))
+        controller.follow(dict(zip(("cam", "depth"), decision.configs, strict=True)))
+    table = controller.table
+    assert isinstance(table, FactoredQTable) and controller._prev_state is not None
+    return table.cells(table.greedy(controller._prev_state))[1] == 0
+
+
+def test_a_sensor_the_detector_does_not_read_learns_its_cheapest_rate_through_quality_noise() -> None:
+    per_sensor = [_learns_cheapest_depth_rate("per-sensor", seed) for seed in range(20)]
+    shared = [_learns_cheapest_depth_rate("shared", seed) for seed in range(20)]
+    assert all(per_sensor)
+    assert not all(shared)  # with the whole reward, the noise of quality outvotes depth's price in some runs

@@ -115,6 +115,15 @@ class RewardWeights(StrictModel):
         "switch up that the switch back down takes away. 0 with alpha > 0: the paper's reward.",
     )
 
+    credit: Literal["shared", "per-sensor"] = Field(
+        "shared",
+        description="Factored tables: the reward each sensor's block of columns learns from. shared: the whole "
+        "reward, every block the same. per-sensor: each sensor pays its own power and bandwidth instead of "
+        "everyone's, and a sensor the detector does not read (perception.model's inputs) learns from its own costs "
+        "alone, since nothing else in the reward depends on it (difference rewards for independent learners). "
+        "Product and moves tables always learn from the whole reward.",
+    )
+
     @model_validator(mode="after")
     def _staleness_non_negative(self) -> RewardWeights:
         if min(self.staleness) < 0 or max(self.staleness) > 1000:

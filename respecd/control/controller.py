@@ -21,7 +21,14 @@ from respecd.control.baselines import heuristic_position, static_position
 from respecd.control.config import ALL_FACTORS, ControllerConfig
 from respecd.control.learned import LearnedStates
 from respecd.control.qlearning import FactoredQTable, QTable
-from respecd.control.reward import compute_power, reward_terms, sensing_delay, sensor_power
+from respecd.control.reward import (
+    compute_power,
+    per_sensor_rewards,
+    reward_terms,
+    sensing_delay,
+    sensor_costs,
+    sensor_power,
+)
 from respecd.control.state import Observation, StateSpace, motion_bin
 from respecd.messages import Decision, SensorConfig
 from respecd.sensors import Capabilities, SensorPower
@@ -39,8 +46,10 @@ class Controller:
         states: StateSpace,
         powers: Mapping[str, SensorPower] | None = None,
         position: Position | None = None,
+        detector_inputs: tuple[str, ...] = ("rgb", "thermal", "radar", "depth"),
     ) -> None:
         self.config = config
+        self.detector_inputs = detector_inputs  # modalities the detector reads (per-sensor credit)
         self.policy = config.policy
         self.space = space
         self.states = states
@@ -76,7 +85,8 @@ class Controller:
         factors = config.factors if config.policy in LEARNING_POLICIES else ALL_FACTORS
         states = StateSpace(factors, config.thresholds, contributions)
         powers = {s.name: s.power for s in profile.sensors}
-        return cls(config, space, states, powers)
+        inputs = ("rgb", *profile.perception.model.aux_modalities)
+        return cls(config, space, states, powers, detector_inputs=inputs)
 
     @property
     def epsilon(self) -> float:
@@ -122,7 +132,11 @@ class Controller:
                              delay, motion, bandwidth)
         reward = terms["reward"]
         if self.policy == "learn" and self.table is not None and self._prev_state is not None:
-            terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state)
+            blocks = self._block_rewards(reward, applied, obs.radar_points)
+            if isinstance(self.table, FactoredQTable):
+                terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state, blocks)
+            else:
+                terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state)
         action, target = self._choose(state, bins)
         if target != self.position and obs.t - self._last_switch_t < self.config.min_dwell_s:
             action, target = self.space.hold_action(self.position), self.position  # dwell: keep sensors settled
@@ -143,6 +157,18 @@ class Controller:
             configs=self.space.requests(target),
             terms=terms,
         )
+
+    def _block_rewards(self, reward: float, applied: Mapping[str, SensorConfig] | None,
+                       radar_points: float | None) -> list[float] | None:
+        """Each sensor's reward under per-sensor credit (a factored table only); None: the shared reward."""
+        if self.config.reward.credit != "per-sensor" or not isinstance(self.table, FactoredQTable):
+            return None
+        requested = self.space.requests(self.position)
+        configs = [(slot.name, applied.get(slot.name, req) if applied else req)
+                   for slot, req in zip(self.space.slots, requested, strict=True)]
+        costs = sensor_costs(self.config.reward, configs, self.powers, radar_points)
+        read = [slot.modality in self.detector_inputs for slot in self.space.slots]
+        return per_sensor_rewards(reward, costs, read)
 
     def _choose(self, state: int, bins: tuple[int, ...]) -> tuple[int, Position]:
         if self.policy == "static":

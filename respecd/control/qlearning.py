@@ -14,6 +14,8 @@ not always pick action 0. ``visits`` counts updates per (state, action) for ``po
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from respecd.control.config import Learning
@@ -147,14 +149,19 @@ class FactoredQTable(QTable):
             action = action * size + cell
         return action
 
-    def update(self, state: int, action: int, reward: float, next_state: int) -> float:
-        """The Watkins update of every block's chosen cell; returns the mean TD error."""
+    def update(self, state: int, action: int, reward: float, next_state: int,
+               block_rewards: Sequence[float] | None = None) -> float:
+        """The Watkins update of every block's chosen cell; returns the mean TD error. ``block_rewards``:
+        one reward per block (per-sensor credit) instead of ``reward`` for all."""
         discount = self.learning.discount
         row, following, visits = self.q[state], self.q[next_state].tolist(), self.visits[state]
+        rewards = [reward] * len(self.blocks) if block_rewards is None else list(block_rewards)
+        if len(rewards) != len(self.blocks):
+            raise ValueError(f"{len(rewards)} block rewards for {len(self.blocks)} blocks")
         total = 0.0
-        for (start, end), cell in zip(self._spans, self.cells(action), strict=True):
+        for (start, end), cell, r in zip(self._spans, self.cells(action), rewards, strict=True):
             column = start + cell
-            error = reward + discount * max(following[start:end]) - float(row[column])
+            error = r + discount * max(following[start:end]) - float(row[column])
             visits[column] += 1
             row[column] += self.step(int(visits[column])) * error
             total += error

@@ -31,8 +31,9 @@ work. Power alone prices the depth camera, which the detector does not read, at 
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping
+from collections.abc import Iterable, Mapping, Sequence
 
+from respecd.control.bandwidth import frame_bytes
 from respecd.control.config import RewardWeights
 from respecd.messages import SensorConfig
 from respecd.sensors import SensorPower
@@ -43,6 +44,25 @@ DETECTOR_MODALITIES = ("rgb", "thermal", "radar", "depth")  # inputs whose stale
 def sensor_power(configs: Iterable[tuple[str, SensorConfig]], models: Mapping[str, SensorPower]) -> float:
     """Watts of the sensors by the profile's power model; (sensor name, applied config) pairs."""
     return sum(models[name].watts(config) for name, config in configs if name in models)
+
+
+def sensor_costs(weights: RewardWeights, configs: Iterable[tuple[str, SensorConfig]],
+                 models: Mapping[str, SensorPower], radar_points: float | None) -> list[float]:
+    """Each sensor's own share of the reward's cost terms, in order: −β·(its model watts) − η·(its MB/s)."""
+    costs = []
+    for name, config in configs:
+        watts = models[name].watts(config) if name in models else 0.0
+        mb_s = frame_bytes(config, radar_points or 0.0) * config.rate_hz / 1e6 if config.enabled else 0.0
+        costs.append(-weights.beta * watts - weights.bandwidth * mb_s)
+    return costs
+
+
+def per_sensor_rewards(reward: float, costs: Sequence[float], read: Sequence[bool]) -> list[float]:
+    """Per-sensor credit (``reward.credit: per-sensor``): each sensor's reward is the whole reward with
+    the other sensors' costs taken out, and a sensor the detector does not read (``read`` False) gets its
+    own costs alone — quality, staleness and latency do not depend on it, so they are only noise to it."""
+    shared = reward - sum(costs)
+    return [shared + cost if reads else cost for cost, reads in zip(costs, read, strict=True)]
 
 
 def compute_power(busy: float, compute_w: float) -> float:
