@@ -35,7 +35,11 @@ def frame_bytes(config: SensorConfig, radar_points: float = 0.0) -> float:
     return 0.0
 
 
+def sensor_bandwidth(config: SensorConfig, radar_points: float | None = None) -> float:
+    """Bytes per second of one sensor (0 when disabled; radar at ``radar_points`` per frame)."""
+    return frame_bytes(config, radar_points or 0.0) * config.rate_hz
+
+
 def sensing_bandwidth(configs: Iterable[SensorConfig], radar_points: float | None = None) -> float:
     """Bytes per second of every running sensor in ``configs`` (radar at ``radar_points`` per frame)."""
-    points = radar_points or 0.0
-    return sum(frame_bytes(c, points) * c.rate_hz for c in configs if c.enabled)
+    return sum(sensor_bandwidth(c, radar_points) for c in configs)

@@ -22,6 +22,7 @@ from respecd.control.config import ALL_FACTORS, ControllerConfig
 from respecd.control.learned import LearnedStates
 from respecd.control.qlearning import FactoredQTable, QTable
 from respecd.control.reward import (
+    DETECTOR_MODALITIES,
     compute_power,
     per_sensor_rewards,
     reward_terms,
@@ -46,7 +47,7 @@ class Controller:
         states: StateSpace,
         powers: Mapping[str, SensorPower] | None = None,
         position: Position | None = None,
-        detector_inputs: tuple[str, ...] = ("rgb", "thermal", "radar", "depth"),
+        detector_inputs: tuple[str, ...] = DETECTOR_MODALITIES,
     ) -> None:
         self.config = config
         self.detector_inputs = detector_inputs  # modalities the detector reads (per-sensor credit)
@@ -132,8 +133,8 @@ class Controller:
                              delay, motion, bandwidth)
         reward = terms["reward"]
         if self.policy == "learn" and self.table is not None and self._prev_state is not None:
-            blocks = self._block_rewards(reward, applied, obs.radar_points)
             if isinstance(self.table, FactoredQTable):
+                blocks = self._block_rewards(reward, applied, obs.radar_points)
                 terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state, blocks)
             else:
                 terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state)
@@ -160,8 +161,8 @@ class Controller:
 
     def _block_rewards(self, reward: float, applied: Mapping[str, SensorConfig] | None,
                        radar_points: float | None) -> list[float] | None:
-        """Each sensor's reward under per-sensor credit (a factored table only); None: the shared reward."""
-        if self.config.reward.credit != "per-sensor" or not isinstance(self.table, FactoredQTable):
+        """Each sensor's (block's) reward under per-sensor credit; None: the shared reward for all."""
+        if self.config.reward.credit != "per-sensor":
             return None
         requested = self.space.requests(self.position)
         configs = [(slot.name, applied.get(slot.name, req) if applied else req)

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable, Mapping, Sequence
 
-from respecd.control.bandwidth import frame_bytes
+from respecd.control.bandwidth import sensor_bandwidth
 from respecd.control.config import RewardWeights
 from respecd.messages import SensorConfig
 from respecd.sensors import SensorPower
@@ -49,12 +49,8 @@ def sensor_power(configs: Iterable[tuple[str, SensorConfig]], models: Mapping[st
 def sensor_costs(weights: RewardWeights, configs: Iterable[tuple[str, SensorConfig]],
                  models: Mapping[str, SensorPower], radar_points: float | None) -> list[float]:
     """Each sensor's own share of the reward's cost terms, in order: −β·(its model watts) − η·(its MB/s)."""
-    costs = []
-    for name, config in configs:
-        watts = models[name].watts(config) if name in models else 0.0
-        mb_s = frame_bytes(config, radar_points or 0.0) * config.rate_hz / 1e6 if config.enabled else 0.0
-        costs.append(-weights.beta * watts - weights.bandwidth * mb_s)
-    return costs
+    return [-weights.beta * sensor_power([(name, config)], models)
+            - weights.bandwidth * (sensor_bandwidth(config, radar_points) / 1e6) for name, config in configs]
 
 
 def per_sensor_rewards(reward: float, costs: Sequence[float], read: Sequence[bool]) -> list[float]:

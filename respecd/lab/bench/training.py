@@ -18,6 +18,8 @@ import statistics
 import time
 from typing import Any
 
+from respecd.errors import InputError
+
 PRECISIONS = ("fp32", "bf16")
 
 
@@ -37,8 +39,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from respecd.perception.config import PerceptionConfig
 
     if args.steps < 1 or args.warmup < 0 or args.threads < 1:
-        from respecd.errors import InputError
-
         raise InputError(f"--steps {args.steps} --warmup {args.warmup} --threads {args.threads}: expected "
                          "steps >= 1, warmup >= 0, threads >= 1")
     torch.set_num_threads(args.threads)
