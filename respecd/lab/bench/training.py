@@ -1,7 +1,7 @@
 """Training: one step of ``respecd train --data sim`` per precision, and the rendering that feeds it.
 
 What ``make weights`` costs is steps × step time, so this times the step itself: the same
-simulated batches (drawn once, as ``SimStream`` draws them: each step one RGB resolution,
+simulated batches (each drawn once and used by both, as ``SimStream`` draws them: one RGB resolution a step,
 320-wide full-height strips) through ``train.train_step`` — forward, loss, backward, AdamW
 and the EMA — once per precision, the precisions alternating step by step so that a change
 in the machine's load falls on both. ``render_ms`` is drawing one step's batch (rendering
@@ -47,18 +47,17 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     cfg = TrainConfig(data="sim", out=None, seed=args.seed)  # type: ignore[arg-type]  # nothing is written
     pool, _ = build_pool(cfg, pcfg)
     rng = np.random.default_rng([args.seed, 0, 11])
-    batches, render_s = [], []
-    for _ in range(args.warmup + args.steps):
-        start = time.perf_counter()
-        batches.append(pool.draw(rng))
-        render_s.append(time.perf_counter() - start)
     runs = {}
     for precision in PRECISIONS:
         torch.manual_seed(args.seed)
         model = initial_model(None, pcfg.model).train()
         runs[precision] = (model, _optimizer(model, cfg), EMA(model))
+    render_s: list[float] = []
     step_s: dict[str, list[float]] = {p: [] for p in PRECISIONS}
-    for i, batch in enumerate(batches):
+    for i in range(args.warmup + args.steps):  # one batch in memory at a time (a 640x360 one is ~25 MB)
+        start = time.perf_counter()
+        batch = pool.draw(rng)
+        render_s.append(time.perf_counter() - start)
         for precision in PRECISIONS:  # alternating: the same load falls on both
             model, opt, ema = runs[precision]
             start = time.perf_counter()
