@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from respecd.messages import conf_agg
+from respecd.perception import fold
 from respecd.perception.boxes import box_iou, nms, pad_to_stride
 from respecd.perception.config import ModelSpec, PerceptionConfig
 from respecd.perception.detector import FusionDetector, frames_from_arrays
@@ -101,3 +102,25 @@ def test_conf_agg_is_mean_of_top_three() -> None:
     assert conf_agg([]) == 0.0
     assert conf_agg([0.5]) == 0.5
     assert conf_agg([0.9, 0.1, 0.8, 0.7]) == pytest.approx(0.8)
+
+
+def test_inference_rewrite_keeps_the_outputs() -> None:
+    """Folded batch norms and channels-last memory (what the detector runs) change no output:
+    on a net whose batch norms hold non-trivial statistics, box and class logits agree to 1e-4."""
+    torch.manual_seed(3)
+    model = FusionNet(TINY).train()
+    with torch.no_grad():
+        for module in model.modules():
+            if isinstance(module, torch.nn.BatchNorm2d):
+                module.weight.uniform_(0.5, 1.5)
+                module.bias.uniform_(-0.3, 0.3)
+        for _ in range(3):  # running statistics away from (0, 1)
+            model(torch.rand(2, 5, 64, 96) * 2, torch.ones(2, 2))
+    x, presence = torch.rand(1, 5, 64, 96), torch.tensor([[1.0, 0.0]])
+    with torch.no_grad():
+        want = model.eval()(x, presence)
+        fast = fold.for_inference(model, torch.device("cpu"))
+        got = fast(fold.channels_last(x), presence)
+    assert not any(isinstance(m, torch.nn.BatchNorm2d) for m in fast.modules())
+    for w, g in zip(want, got, strict=True):
+        torch.testing.assert_close(g, w, atol=1e-4, rtol=1e-4)

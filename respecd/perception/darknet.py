@@ -31,6 +31,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from respecd.errors import InputError
+from respecd.perception import fold
 
 SUPPORTED = ("net", "convolutional", "shortcut", "route", "upsample", "maxpool", "dropout", "yolo")
 BN_EPS = 1e-6  # Darknet (blas.c normalize_cpu) divides by sqrt(variance) + .000001; the same to float precision
@@ -171,17 +172,11 @@ class ConvLayer(nn.Module):
         x = self.conv(x)
         return self.act(self.bn(x) if self.bn is not None else x)
 
-    @torch.no_grad()
     def fold_batchnorm(self) -> None:
         """Inference only: the batch norm folded into the convolution (one op less per layer, same output)."""
-        bn, conv = self.bn, self.conv
-        if bn is None:
-            return
-        mean, variance = _running_stats(bn)
-        scale = bn.weight / torch.sqrt(variance + bn.eps)
-        conv.weight.mul_(scale[:, None, None, None])
-        conv.bias = nn.Parameter(bn.bias - mean * scale, requires_grad=conv.weight.requires_grad)
-        self.bn = None
+        if self.bn is not None:
+            fold.fold_batchnorm(self.conv, self.bn)
+            self.bn = None
 
 
 def _running_stats(bn: nn.BatchNorm2d) -> tuple[torch.Tensor, torch.Tensor]:

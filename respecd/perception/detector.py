@@ -16,13 +16,13 @@ import structlog
 import torch
 
 from respecd.messages import Detection, Frame, Percept, conf_agg
-from respecd.perception import checkpoint
+from respecd.perception import checkpoint, fold
 from respecd.perception.align import AlignedInput, Aligner
 from respecd.perception.attribution import Attribution, Attributor, SceneScores
 from respecd.perception.boxes import postprocess
 from respecd.perception.checkpoint import Net
 from respecd.perception.config import PerceptionConfig
-from respecd.perception.darknet_fusion import DarknetFusionNet
+from respecd.perception.model import count_parameters
 from respecd.sensors import Calibration
 
 log = structlog.get_logger(__name__)
@@ -33,13 +33,12 @@ class FusionDetector:
 
     def __init__(self, model: Net, config: PerceptionConfig,
                  calibration: dict[str, Calibration | None] | None = None) -> None:
-        self.model = model.eval()
-        for p in self.model.parameters():  # attribution needs input gradients only
-            p.requires_grad_(False)
-        if isinstance(model, DarknetFusionNet):
-            model.fold_batchnorm()  # the daemon never trains its detector
         self.config = config
         self.device = torch.device(config.device)
+        for p in model.parameters():  # attribution needs input gradients only
+            p.requires_grad_(False)
+        self.parameters = count_parameters(model)  # as trained (folding merges each batch norm into a conv)
+        self.model = fold.for_inference(model, self.device)  # the daemon never trains its detector
         self.channels = model.spec.channels
         self.aligner = Aligner(config, calibration)
         self.attributor = Attributor(self.model, config.attribution_method)
@@ -82,7 +81,7 @@ class FusionDetector:
 
     def run(self, aligned: AlignedInput, attribute_now: bool, t: float = 0.0):
         """Network + NMS (+ attribution) on an aligned input -> (detections, contributions | None)."""
-        x = torch.from_numpy(aligned.tensor).unsqueeze(0).to(self.device)  # (1, C, Hp, Wp)
+        x = fold.channels_last(torch.from_numpy(aligned.tensor).unsqueeze(0).to(self.device))  # (1, C, Hp, Wp)
         presence = torch.from_numpy(aligned.presence).unsqueeze(0).to(self.device)  # (1, A)
         cfg = self.config
         if not attribute_now:

@@ -69,7 +69,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from respecd.perception.attribution import METHODS, Attributor
     from respecd.perception.config import PerceptionConfig
     from respecd.perception.detector import FusionDetector
-    from respecd.perception.model import count_parameters
 
     config = PerceptionConfig(weights=args.weights, model=checkpoint.spec_of(args.weights))  # the file's own net
     threads = args.threads or config.torch_threads
@@ -102,6 +101,6 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
             "detections": len(detections),
             "methods": methods,
         })
-    return {"resolutions": rows, "model_params": count_parameters(detector.model), "torch_threads": threads,
+    return {"resolutions": rows, "model_params": detector.parameters, "torch_threads": threads,
             "method": config.attribution_method, "repeats": args.repeats, "weights": args.weights,
             "load_avg_1m": round(os.getloadavg()[0], 2)}

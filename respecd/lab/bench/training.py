@@ -35,7 +35,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     import torch
 
     from respecd.lab.detector.finetune import initial_model
-    from respecd.lab.detector.train import EMA, TrainConfig, _optimizer, build_pool, train_step
+    from respecd.lab.detector.train import EMA, TrainConfig, _optimizer, build_pool, to_training_layout, train_step
     from respecd.perception.config import PerceptionConfig
 
     if args.steps < 1 or args.warmup < 0 or args.threads < 1:
@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     runs = {}
     for precision in PRECISIONS:
         torch.manual_seed(args.seed)
-        model = initial_model(None, pcfg.model).train()
+        model = to_training_layout(initial_model(None, pcfg.model)).train()
         runs[precision] = (model, _optimizer(model, cfg), EMA(model))
     render_s: list[float] = []
     step_s: dict[str, list[float]] = {p: [] for p in PRECISIONS}
