@@ -44,29 +44,31 @@ bench-peers: install
 # stage was trained before daylight crossover: equivalent, not bit-identical).
 STRIPS := --keep-cut 0.4 --radar-alone 0.18
 CURTAIN_AND_CUT := --scenario-weight behind-curtain=4,occlusion-partial=3
+# extra flags for every stage, e.g. WEIGHTS_FLAGS="--precision bf16 --threads 2" (docs/PERCEPTION.md)
+WEIGHTS_FLAGS ?=
 SIZE_ZOOMS := --strip-zoom 0.7,2.0 --strip-zoom 640x360=0.8,1.25 --strip-zoom 960x540=0.7,1.6
 weights: install
 	mkdir -p build
-	$(BIN)/respecd train --data sim --out build/sim-rover-base.pt --eval-frames 0
-	$(BIN)/respecd train --data sim --init build/sim-rover-base.pt --epochs 5 --lr 0.001 \
+	$(BIN)/respecd train $(WEIGHTS_FLAGS) --data sim --out build/sim-rover-base.pt --eval-frames 0
+	$(BIN)/respecd train $(WEIGHTS_FLAGS) --data sim --init build/sim-rover-base.pt --epochs 5 --lr 0.001 \
 	  --out build/sim-rover-crossover.pt --eval-frames 0
-	$(BIN)/respecd train --data sim --init build/sim-rover-crossover.pt --epochs 6 --lr 0.001 $(STRIPS) \
+	$(BIN)/respecd train $(WEIGHTS_FLAGS) --data sim --init build/sim-rover-crossover.pt --epochs 6 --lr 0.001 $(STRIPS) \
 	  --strip-zoom 0.7,1.8 --scenario-weight behind-curtain=3 --out build/sim-rover-cut1.pt --eval-frames 0
-	$(BIN)/respecd train --data sim --init build/sim-rover-cut1.pt --epochs 8 --lr 0.0007 $(STRIPS) \
+	$(BIN)/respecd train $(WEIGHTS_FLAGS) --data sim --init build/sim-rover-cut1.pt --epochs 8 --lr 0.0007 $(STRIPS) \
 	  --strip-zoom 0.7,2.0 --scenario-weight behind-curtain=4 --out build/sim-rover-cut2.pt --eval-frames 0
-	$(BIN)/respecd train --data sim --init build/sim-rover-cut2.pt --epochs 8 --lr 0.0005 $(STRIPS) \
+	$(BIN)/respecd train $(WEIGHTS_FLAGS) --data sim --init build/sim-rover-cut2.pt --epochs 8 --lr 0.0005 $(STRIPS) \
 	  --strip-zoom 0.7,2.0 $(CURTAIN_AND_CUT) --out build/sim-rover-cut3.pt \
 	  --eval-frames 0
-	$(BIN)/respecd train --data sim --init build/sim-rover-cut3.pt --epochs 8 --lr 0.0004 $(STRIPS) \
+	$(BIN)/respecd train $(WEIGHTS_FLAGS) --data sim --init build/sim-rover-cut3.pt --epochs 8 --lr 0.0004 $(STRIPS) \
 	  --strip-zoom 0.7,2.0 $(CURTAIN_AND_CUT) --out build/sim-rover-cut4.pt \
 	  --eval-frames 0
-	$(BIN)/respecd train --data sim --init build/sim-rover-cut4.pt --epochs 6 --lr 0.0003 $(STRIPS) $(SIZE_ZOOMS) \
+	$(BIN)/respecd train $(WEIGHTS_FLAGS) --data sim --init build/sim-rover-cut4.pt --epochs 6 --lr 0.0003 $(STRIPS) $(SIZE_ZOOMS) \
 	  $(CURTAIN_AND_CUT) --resolution-weight 640x360=3 \
 	  --out build/sim-rover-zoom1.pt --eval-frames 0
-	$(BIN)/respecd train --data sim --init build/sim-rover-zoom1.pt --epochs 3 --lr 0.0002 $(STRIPS) $(SIZE_ZOOMS) \
+	$(BIN)/respecd train $(WEIGHTS_FLAGS) --data sim --init build/sim-rover-zoom1.pt --epochs 3 --lr 0.0002 $(STRIPS) $(SIZE_ZOOMS) \
 	  $(CURTAIN_AND_CUT) --resolution-weight 640x360=2,1280x720=2 \
 	  --out build/sim-rover-zoom2.pt --eval-frames 0
-	$(BIN)/respecd train --data sim --init build/sim-rover-zoom2.pt --epochs 3 --steps 200 --lr 0.0002 --seed 1 \
+	$(BIN)/respecd train $(WEIGHTS_FLAGS) --data sim --init build/sim-rover-zoom2.pt --epochs 3 --steps 200 --lr 0.0002 --seed 1 \
 	  $(STRIPS) $(SIZE_ZOOMS) $(CURTAIN_AND_CUT) \
 	  --resolution-weight 640x360=2,1280x720=3 --out respecd/perception/weights/sim-rover.pt
 
