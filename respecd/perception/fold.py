@@ -33,9 +33,9 @@ def for_inference(model: NetT, device: torch.device) -> NetT:
     """``model`` in eval mode with its batch norms folded (a net that offers ``fold_batchnorm``)
     and, on CPU, in channels-last memory; feed it ``channels_last(x)``."""
     model.eval()
-    fold = getattr(model, "fold_batchnorm", None)
-    if fold is not None:
-        fold()
+    fold_all = getattr(model, "fold_batchnorm", None)
+    if fold_all is not None:
+        fold_all()
     if device.type == "cpu":
         model.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # torch's stub lacks it
     return model
