@@ -102,9 +102,23 @@ def test_static_probe_scores_each_variant_on_every_scenario(profile_path: Path, 
     latency = tmp_path / "lat.json"
     latency.write_text(json.dumps({"latency_ms": {"640x360": {"forward_ms": 40.0, "attribution_ms": 90.0}}}))
     table = probe(profile_path, 0, 1, 1.0, latency, tmp_path / "cache", random_detector=True)
-    assert list(table) == ["everything at maximum", "every rate <= 10 Hz"]  # the tiny profile has one resolution
-    for row in table.values():
-        assert set(row) == {"pooled", *SCENARIOS} and all(0.0 <= v <= 1.0 for v in row.values())
+    assert list(table) == ["map50", "conf_agg"]
+    for rows in table.values():
+        assert list(rows) == ["everything at maximum", "every rate <= 10 Hz"]  # the tiny profile has one resolution
+        for row in rows.values():
+            assert set(row) == {"pooled", *SCENARIOS} and all(0.0 <= v <= 1.0 for v in row.values())
+
+
+def test_mean_conf_agg_is_the_daemons_conf_agg_averaged_over_instants() -> None:
+    from respecd.lab.detector.metrics import ImageResult
+    from respecd.lab.experiment.probe import mean_conf_agg
+
+    def image(*scores: float) -> ImageResult:
+        return ImageResult(np.zeros((len(scores), 4), np.float32), np.array(scores, np.float32), np.zeros((0, 4)))
+
+    # top min(3, N): (0.9 + 0.8 + 0.7) / 3 for the first instant, 0.6 for the second, 0 for an empty one
+    assert mean_conf_agg([image(0.9, 0.5, 0.8, 0.7), image(0.6), image()]) == pytest.approx((0.8 + 0.6 + 0.0) / 3)
+    assert mean_conf_agg([]) == 0.0
 
 
 def test_rl_table_for_another_profile_is_refused(trained: Path) -> None:

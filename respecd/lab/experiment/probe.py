@@ -3,6 +3,8 @@
 A diagnosis for docs/RESULTS.md, not a baseline (the benchmark's ``static`` stays "everything
 at its maximum"): each smaller RGB resolution, and every rate capped at 10 Hz, with every
 other sensor setting at its maximum, scored on the same worlds and instants as the benchmark.
+Beside mAP@0.5 it reports the mean ConfAgg at the scored instants, the quality signal the agent's
+reward and state read, so one can see whether that signal rises where accuracy does.
 
 usage: python -m respecd.lab.experiment.probe --seed 500 --worlds 3 --duration 20 --latency FILE
 """
@@ -14,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from respecd.lab.detector.metrics import ImageResult, average_precision
+from respecd.messages import conf_agg
 
 
 def variants(actions: Any) -> dict[str, dict[str, Any]]:
@@ -25,10 +28,16 @@ def variants(actions: Any) -> dict[str, dict[str, Any]]:
     return out
 
 
+def mean_conf_agg(images: list[ImageResult]) -> float:
+    """Mean ConfAgg (the daemon's: top min(3, N) detections) over scored instants; 0 when none."""
+    return sum(conf_agg(image.pred_scores.tolist()) for image in images) / len(images) if images else 0.0
+
+
 def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, latency: Path,
-          cache_dir: Path | None = None, random_detector: bool = False) -> dict[str, dict[str, float]]:
-    """variant -> {"pooled": mAP@0.5, scenario: mAP@0.5}, over ``worlds`` sets from ``seed``
-    (``random_detector``: an untrained net, for tests)."""
+          cache_dir: Path | None = None, random_detector: bool = False) -> dict[str, dict[str, dict[str, float]]]:
+    """{"map50": {variant: {"pooled": mAP@0.5, scenario: mAP@0.5}}, "conf_agg": {variant: {"pooled":
+    mean ConfAgg, scenario: mean ConfAgg}}} over ``worlds`` sets from ``seed`` (``random_detector``: an
+    untrained net, for tests)."""
     from respecd.config import load_profile
     from respecd.lab.experiment import latency as lat
     from respecd.lab.experiment.compare import world_sets
@@ -40,7 +49,7 @@ def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, la
     pinned = lat.load(latency, rgb_resolutions(controller_for(base, "static")))
     actions = base.controller.actions
     pieces_sets = world_sets(base.simulation.scenarios, seed, worlds, duration_s)
-    results: dict[str, dict[str, float]] = {}
+    results: dict[str, dict[str, dict[str, float]]] = {"map50": {}, "conf_agg": {}}
     try:
         for name, change in variants(actions).items():
             controller = base.controller.model_copy(update={"actions": actions.model_copy(update=change)})
@@ -51,10 +60,10 @@ def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, la
                 for record in rollout.run(controller_for(profile, "static"), pieces):
                     per.setdefault(record.scenario, []).extend(record.images)
             pooled = [image for images in per.values() for image in images]
-            results[name] = {"pooled": average_precision(pooled, 0.5),
-                             **{s: average_precision(v, 0.5) for s, v in per.items()}}
-            cells = " ".join(f"{s} {v:.3f}" for s, v in results[name].items())
-            print(f"{name}: {cells}", flush=True)
+            for key, score in (("map50", lambda v: average_precision(v, 0.5)), ("conf_agg", mean_conf_agg)):
+                results[key][name] = {"pooled": score(pooled), **{s: score(v) for s, v in per.items()}}
+                cells = " ".join(f"{s} {v:.3f}" for s, v in results[key][name].items())
+                print(f"{name} ({key}): {cells}", flush=True)
     finally:
         evaluator.cache.close()
     return results
