@@ -80,6 +80,15 @@ def test_per_sensor_candidates_differ_from_their_bases_only_in_the_credit():
     assert free_per_sensor == {**free, "credit": "per-sensor"}
 
 
+def test_resolution_candidates_differ_from_e_only_in_latency_and_quality_weights():
+    _, e = _ablation_difference("sim-rover-per-sensor-free-bandwidth", "reward")
+    _, g = _ablation_difference("sim-rover-no-latency", "reward")
+    _, h = _ablation_difference("sim-rover-quality", "reward")
+    assert e["gamma"] > 0 and g == {**e, "gamma": 0.0}
+    assert h == {**g, "confidence_level": h["confidence_level"]}
+    assert h["confidence_level"] == pytest.approx(3 * e["confidence_level"])
+
+
 def test_heavy_bandwidth_candidate_differs_from_sim_rover_only_in_the_bandwidth_weight():
     base_reward, candidate_reward = _ablation_difference("sim-rover-heavy-bandwidth", "reward")
     assert candidate_reward == {**base_reward, "bandwidth": 3 * base_reward["bandwidth"]}
