@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -107,6 +109,24 @@ def test_static_probe_scores_each_variant_on_every_scenario(profile_path: Path, 
         assert list(rows) == ["everything at maximum", "every rate <= 10 Hz"]  # the tiny profile has one resolution
         for row in rows.values():
             assert set(row) == {"pooled", *SCENARIOS} and all(0.0 <= v <= 1.0 for v in row.values())
+
+
+def test_probe_score_threshold_reaches_the_detector(profile_path: Path, tmp_path: Path) -> None:
+    from respecd.lab.experiment.probe import probe
+
+    latency = tmp_path / "lat.json"
+    latency.write_text(json.dumps({"latency_ms": {"640x360": {"forward_ms": 40.0, "attribution_ms": 90.0}}}))
+    every = probe(profile_path, 0, 1, 1.0, latency, tmp_path / "cache", random_detector=True, score_threshold=0.0)
+    none = probe(profile_path, 0, 1, 1.0, latency, tmp_path / "cache", random_detector=True, score_threshold=1.0)
+    assert every["conf_agg"]["everything at maximum"]["pooled"] > 0.0  # an untrained net's boxes all pass at 0
+    assert none["conf_agg"]["everything at maximum"]["pooled"] == 0.0  # and none pass at 1
+
+
+def test_probe_refuses_a_threshold_outside_0_1() -> None:
+    result = subprocess.run([sys.executable, "-m", "respecd.lab.experiment.probe", "--latency", "x.json",
+                             "--score-threshold", "1.5"], capture_output=True, text=True)
+    assert result.returncode == 2 and "expected a number in [0, 1], got 1.5" in result.stderr
+    assert "Traceback" not in result.stderr
 
 
 def test_mean_conf_agg_is_the_daemons_conf_agg_averaged_over_instants() -> None:

@@ -34,10 +34,12 @@ def mean_conf_agg(images: list[ImageResult]) -> float:
 
 
 def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, latency: Path,
-          cache_dir: Path | None = None, random_detector: bool = False) -> dict[str, dict[str, dict[str, float]]]:
+          cache_dir: Path | None = None, random_detector: bool = False,
+          score_threshold: float | None = None) -> dict[str, dict[str, dict[str, float]]]:
     """{"map50": {variant: {"pooled": mAP@0.5, scenario: mAP@0.5}}, "conf_agg": {variant: {"pooled":
     mean ConfAgg, scenario: mean ConfAgg}}} over ``worlds`` sets from ``seed`` (``random_detector``: an
-    untrained net, for tests)."""
+    untrained net, for tests; ``score_threshold``: the daemon's box threshold in place of the profile's, to
+    see what it hides — the benchmark scores only the boxes the daemon delivers)."""
     from respecd.config import load_profile
     from respecd.lab.experiment import latency as lat
     from respecd.lab.experiment.compare import world_sets
@@ -45,6 +47,9 @@ def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, la
     from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
 
     base = load_profile(profile_ref)
+    if score_threshold is not None:
+        perception = base.perception.model_copy(update={"score_threshold": score_threshold})
+        base = base.model_copy(update={"perception": perception})
     evaluator = make_evaluator(load_detector(base, random_init=random_detector), base, True, cache_dir)
     pinned = lat.load(latency, rgb_resolutions(controller_for(base, "static")))
     actions = base.controller.actions
@@ -69,6 +74,17 @@ def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, la
     return results
 
 
+def unit_interval(text: str) -> float:
+    """An argparse type: a number in [0, 1] (a bad one exits 2 with the value and the range)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {value}")
+    return value
+
+
 if __name__ == "__main__":
     import json
     import sys
@@ -83,9 +99,12 @@ if __name__ == "__main__":
     parser.add_argument("--latency", type=Path, required=True, help="a pinned latency file")
     parser.add_argument("--cache-dir", type=Path)
     parser.add_argument("--json", type=Path, help="write the table here too")
+    parser.add_argument("--score-threshold", type=unit_interval,
+                        help="box score threshold 0..1 (default: the profile's)")
     a = parser.parse_args()
     try:
-        table = probe(a.profile, a.seed, a.worlds, a.duration, a.latency, a.cache_dir)
+        table = probe(a.profile, a.seed, a.worlds, a.duration, a.latency, a.cache_dir,
+                      score_threshold=a.score_threshold)
     except InputError as err:  # a bad profile or latency file: where and what was expected, exit 2
         print(f"probe: {err}", file=sys.stderr)
         sys.exit(2)
