@@ -97,6 +97,8 @@ def test_eval_command_on_the_simulator_writes_every_key(tmp_path: Path) -> None:
         assert set(row["recall_by_height"]["all"]) == {"0-0.1", "0.1-0.2", "0.2-0.4", "0.4-0.7", ">=0.7"}
         assert set(row["false_boxes"]) == {"all", *conditions}
         assert set(row["false_boxes"]["all"]) == {"second", "misplaced", "clutter"}
+        assert set(row["delivered_map50"]) == {"all", *conditions}
+        assert 0 <= row["delivered_map50"]["all"] <= 1
     assert set(report["ablation"]) == {"all", *conditions}
     assert set(report["ablation"]["radar-only"]) == {"none", "no_rgb", "no_thermal", "no_radar", "rgb_only"}
     assert report["frames"]["radar-only"] == 2 and report["frames"]["all"] == 14  # 7 scenarios x 2 instants
@@ -132,6 +134,19 @@ def test_recall_by_height_bins_people_by_their_share_of_the_frame() -> None:
         "0.4-0.7": [0, 1],  # 150 px: boxed, but at 0.2 < the daemon's 0.25
         ">=0.7": [1, 1],  # 300 px: IoU 0.53 >= 0.5 counts
     }
+
+
+def test_delivered_keeps_only_the_boxes_the_daemon_hands_on() -> None:
+    from respecd.lab.detector.evaluate import delivered
+    from respecd.lab.detector.metrics import ImageResult, average_precision
+
+    people = np.array([[0, 0, 10, 30], [50, 0, 60, 150]], np.float32)
+    found = np.array([[0, 0, 10, 30], [50, 0, 60, 150]], np.float32)
+    image = ImageResult(found, np.array([0.9, 0.2], np.float32), people, np.zeros(2, bool))
+    kept = delivered([image])[0]
+    assert kept.pred_scores.tolist() == pytest.approx([0.9]) and kept.gt_boxes is image.gt_boxes
+    assert average_precision([image], 0.5) == pytest.approx(1.0)  # ranked down to 0.2: both found
+    assert average_precision([kept], 0.5) == pytest.approx(51 / 101)  # delivered: the 0.2 person is missed (101 points)
 
 
 def test_false_boxes_are_split_into_second_misplaced_and_clutter() -> None:

@@ -6,7 +6,9 @@ two per scenario run, at the profile's default sensor settings and the daemon's 
 Per instant:
 
 * at each RGB resolution the controller can choose, the detector with every sensor on:
-  mAP@0.5 per condition (``by_resolution``) and which head level each detection came from;
+  mAP@0.5 per condition (``by_resolution``) and which head level each detection came from, and
+  ``delivered_map50``: mAP@0.5 of only the boxes the daemon delivers (its score threshold) —
+  what the robot gets, and what the benchmark of docs/RESULTS.md scores;
 * at the attribution resolution (640x360 unless asked), every sensor on and each one off
   (zero plane, presence 0: what the daemon feeds a disabled sensor): mAP per condition
   (``ablation``, and ``map`` with mAP@0.5:0.95 too);
@@ -29,7 +31,7 @@ import numpy as np
 import torch
 
 from respecd.lab.detector.data import Sample
-from respecd.lab.detector.metrics import ImageResult, false_box_kinds, iou_matrix, mean_ap
+from respecd.lab.detector.metrics import ImageResult, average_precision, false_box_kinds, iou_matrix, mean_ap
 from respecd.perception.attribution import Attributor
 from respecd.perception.boxes import pad_to_stride, postprocess
 from respecd.perception.config import PerceptionConfig
@@ -149,6 +151,7 @@ class Evaluation:
                 "tallest_detection_px": round(self.tallest[size], 1),
                 "recall_by_height": {c: recall_by_height(images, int(size.split("x")[1])) for c, images in by.items()},
                 "false_boxes": {c: false_box_kinds(images, OPERATING_THRESHOLD) for c, images in by.items()},
+                "delivered_map50": {c: average_precision(delivered(images), 0.5) for c, images in by.items()},
             }
         cfg = self.detector.config
         return {
@@ -187,6 +190,16 @@ def recall_by_height(images: list[ImageResult], frame_height: int,
         np.add.at(people, bins, 1)
         np.add.at(found, bins, hit.astype(np.int64))
     return {name: [int(f), int(p)] for name, f, p in zip(names, found, people, strict=True)}
+
+
+def delivered(images: list[ImageResult], threshold: float = OPERATING_THRESHOLD) -> list[ImageResult]:
+    """The images with only the boxes at or above the daemon's score threshold: AP ranks boxes down to
+    0.01, the daemon hands on none under its threshold, so a person found at 0.2 is missed on the robot."""
+    out = []
+    for image in images:
+        keep = image.pred_scores >= threshold
+        out.append(ImageResult(image.pred_boxes[keep], image.pred_scores[keep], image.gt_boxes, image.gt_ignore))
+    return out
 
 
 def detection_count(images: list[ImageResult], threshold: float = OPERATING_THRESHOLD) -> int:

@@ -32,6 +32,10 @@ def _resolution_table(report: dict, conds: list[str]) -> list[str]:
     for share in rows[sizes[0]].get("recall_by_height", {}).get("all", {}):  # people found, by height share
         lines.append(f"| found >= 0.25, height {share} of frame | "
                      + " | ".join("{} of {}".format(*rows[s]["recall_by_height"]["all"][share]) for s in sizes) + " |")
+    for cond in conds:  # mAP@0.5 of the boxes the daemon delivers ("all" first)
+        if cond in rows[sizes[0]].get("delivered_map50", {}):
+            lines.append(f"| delivered boxes (>= 0.25) only, {cond} | "
+                         + " | ".join(_fmt(rows[s]["delivered_map50"][cond]) for s in sizes) + " |")
     for cond in conds:  # false boxes >= 0.25, by kind ("all" first)
         if cond in rows[sizes[0]].get("false_boxes", {}):
             lines.append(f"| false boxes >= 0.25, {cond} (second / misplaced / clutter) | " + " | ".join(
