@@ -41,7 +41,9 @@ bench-peers: install
 # daylight-crossover world, then four fine-tunes where cut people stay targets (--keep-cut 0.4), strips zoom to
 # 1.8-2x (near, frame-cut people whole) and radar-only scenes come more often; then three where each RGB size has
 # its own strip zoom and 640x360 / 1280x720 strips are drawn more often. ~9240 CPU-s in all (the shipped base
-# stage was trained before daylight crossover: equivalent, not bit-identical).
+# stage was trained before daylight crossover: equivalent, not bit-identical). Last, `respecd calibrate` fits the
+# confidence calibration per RGB size on one validation world and checks it on another (3.5 min; docs/PERCEPTION.md
+# "Confidence calibration").
 STRIPS := --keep-cut 0.4 --radar-alone 0.18
 CURTAIN_AND_CUT := --scenario-weight behind-curtain=4,occlusion-partial=3
 # extra flags for every stage, e.g. WEIGHTS_FLAGS="--precision bf16 --threads 2": 47.7 min from a clean clone,
@@ -71,7 +73,9 @@ weights: install
 	  --out build/sim-rover-zoom2.pt --eval-frames 0
 	$(BIN)/respecd train $(WEIGHTS_FLAGS) --data sim --init build/sim-rover-zoom2.pt --epochs 3 --steps 200 --lr 0.0002 --seed 1 \
 	  $(STRIPS) $(SIZE_ZOOMS) $(CURTAIN_AND_CUT) \
-	  --resolution-weight 640x360=2,1280x720=3 --out respecd/perception/weights/sim-rover.pt
+	  --resolution-weight 640x360=2,1280x720=3 --out build/sim-rover-sizes.pt
+	$(BIN)/respecd calibrate --weights build/sim-rover-sizes.pt --out respecd/perception/weights/sim-rover.pt \
+	  --seed 2000003 --check-seed 3000003 --no-progress
 
 # builtin:rgbt (configs/spec-rover.yaml): Yolo-Fastest 1.1 body (RGB backbone and head, as trained on real photos)
 # with Yolo-Fastest xl's backbone on thermal at half resolution; only the 1x1 convolutions mapping xl's features

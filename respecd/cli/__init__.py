@@ -22,6 +22,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("respecd.cli.bench", "run a benchmark, print figures, write JSON"),
     "train": ("respecd.cli.train", "train the fusion detector on the simulated rover or an LLVIP-layout folder"),
     "eval": ("respecd.cli.eval", "mAP per RGB resolution and with each sensor off, contributions, faithfulness"),
+    "calibrate": ("respecd.cli.calibrate", "fit the detector's confidence calibration per RGB size into a checkpoint"),
     "radar-profile": ("respecd.cli.radar_profile", "print the radar chirp cfg and its four figures"),
     "radar-dump": ("respecd.cli.radar_dump", "decode a recorded radar data-port capture, one line per frame"),
     "log": ("respecd.cli.log", "inspect a recorded MCAP session log: `log info LOG`"),

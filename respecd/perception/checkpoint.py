@@ -44,6 +44,11 @@ def save(path: Path, model: Net, extra: dict[str, Any] | None = None) -> None:
     """Write the checkpoint atomically (tmp file + rename), so a crash never leaves half a file."""
     payload = {"format": FORMAT, "spec": model.spec.model_dump(mode="json"), "state_dict": model.state_dict()}
     payload.update(extra or {})
+    save_payload(path, payload)
+
+
+def save_payload(path: Path, payload: dict[str, Any]) -> None:
+    """Write a checkpoint dict as ``read`` returns it, atomically (``save``)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
     torch.save(payload, tmp)

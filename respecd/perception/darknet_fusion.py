@@ -37,6 +37,7 @@ from torch import nn
 
 from respecd.errors import InputError
 from respecd.perception import darknet
+from respecd.perception.calibration import ScoreCalibration, calibrated
 from respecd.perception.config import ModelSpec
 
 
@@ -77,6 +78,7 @@ class DarknetFusionNet(nn.Module):
     def __init__(self, spec: ModelSpec) -> None:
         super().__init__()
         self.spec = spec
+        self.score_calibration: ScoreCalibration | None = None  # set by FusionDetector.load, never trained
         text, source = cfg_text(spec.backbone)
         sections = darknet.with_classes(darknet.parse_cfg(text, source), len(spec.classes))
         layout = darknet.DarknetNet(sections, 3, source, keep=range(0))
@@ -193,7 +195,7 @@ class DarknetFusionNet(nn.Module):
         rows = torch.cat([darknet.decode_yolo(r, s, input_hw) for r, s in zip(raw, self.yolo_specs, strict=True)], 1)
         centre, size = rows[..., :2], rows[..., 2:4]
         boxes = torch.cat([centre - size / 2, centre + size / 2], -1)
-        return boxes, rows[..., 4:5] * rows[..., 5:]
+        return boxes, calibrated(self.score_calibration, rows[..., 4:5] * rows[..., 5:], input_hw)
 
 
 @contextlib.contextmanager

@@ -20,6 +20,7 @@ from respecd.perception import checkpoint, fold
 from respecd.perception.align import AlignedInput, Aligner
 from respecd.perception.attribution import Attribution, Attributor, SceneScores
 from respecd.perception.boxes import postprocess
+from respecd.perception.calibration import ScoreCalibration
 from respecd.perception.checkpoint import Net
 from respecd.perception.config import PerceptionConfig
 from respecd.perception.model import count_parameters
@@ -48,6 +49,8 @@ class FusionDetector:
     def load(cls, config: PerceptionConfig, calibration: dict[str, Calibration | None] | None = None) -> FusionDetector:
         """Load ``config.weights`` (``builtin:NAME`` or a path); ConfigError if bad or mismatched."""
         model, payload = checkpoint.load(config.weights, expected=config.model, map_location=config.device)
+        if payload.get("score_calibration") is not None:  # confidences that mean the same at every RGB size
+            model.score_calibration = ScoreCalibration.from_payload(payload["score_calibration"], config.weights)
         log.info("detector_loaded", weights=config.weights, channels=",".join(model.spec.channels),
                  trained_on=payload.get("data"))
         return cls(model, config, calibration)

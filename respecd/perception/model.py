@@ -19,6 +19,7 @@ import torch
 from torch import nn
 
 from respecd.perception import fold
+from respecd.perception.calibration import ScoreCalibration, calibrated
 from respecd.perception.config import ModelSpec
 
 STRIDES = (8, 16, 32)  # P3, P4, P5
@@ -169,6 +170,7 @@ class FusionNet(nn.Module):
     def __init__(self, spec: ModelSpec) -> None:
         super().__init__()
         self.spec = spec
+        self.score_calibration: ScoreCalibration | None = None  # set by FusionDetector.load, never trained
         n_aux = len(spec.aux_modalities)
         self.rgb = Backbone(3, spec.rgb_widths, spec.depths)
         self.aux = Backbone(2 * n_aux, spec.aux_widths, spec.depths)  # data planes + presence planes
@@ -209,11 +211,13 @@ class FusionNet(nn.Module):
 
     def decode(self, raw: tuple[torch.Tensor, torch.Tensor],
                input_hw: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor]:
-        """Raw head output -> boxes (B, N, 4) x1y1x2y2 in input pixels and class probabilities (B, N, nc)."""
+        """Raw head output -> boxes (B, N, 4) x1y1x2y2 in input pixels and class probabilities (B, N, nc),
+        calibrated for the input size when the checkpoint carries a calibration."""
         box_logits, cls_logits = raw
         height, width = input_hw
         points, strides = anchor_grid(height, width, device=box_logits.device)
-        return decode_boxes(box_logits, points, strides, self.spec.reg_max), cls_logits.sigmoid()
+        boxes = decode_boxes(box_logits, points, strides, self.spec.reg_max)
+        return boxes, calibrated(self.score_calibration, cls_logits.sigmoid(), input_hw)
 
 
 def anchor_grid(height: int, width: int, device: torch.device | None = None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import itertools
 from collections import defaultdict
+from collections.abc import Iterator
 
 import numpy as np
 import torch
@@ -253,27 +254,37 @@ def evaluate_samples(detector: FusionDetector, samples, progress: bool = False,
     return evaluation.report()
 
 
-def evaluate_sim(detector: FusionDetector, per_scenario: int, attribution_size: tuple[int, int] = (640, 360),
-                 seed: int = EVAL_SEED, progress: bool = False,
-                 attribution_threshold: float = OPERATING_THRESHOLD) -> dict:
-    """Held-out simulated instants, ``per_scenario`` of each scenario, at every RGB resolution."""
+def sim_instants(detector: FusionDetector, per_scenario: int, seed: int, sizes: list[tuple[int, int]],
+                 progress: bool = False) -> Iterator[tuple[Sample, list[str]]]:
+    """Held-out simulated instants, ``per_scenario`` of each scenario (two per scenario run), each
+    rendered at every size in ``sizes`` with the same noise draws: (sample, its conditions)."""
     from respecd.lab.detector.data import progress as progress_bar
-    from respecd.lab.detector.simdata import RESOLUTIONS, SimFrames, condition_of
+    from respecd.lab.detector.simdata import SimFrames, condition_of
 
     frames = SimFrames(detector.config, seed)
     n = len(frames.sim.scenarios)
     instants = [(run * n + s, fraction) for run in range(max(1, per_scenario // 2)) for s in range(n)
                 for fraction in (0.3, 0.7)]  # two instants per scenario run
-    sizes: list[tuple[int, int]] = sorted({*RESOLUTIONS, (attribution_size[0], attribution_size[1])})
-    evaluation = Evaluation(detector, attribution_threshold)
     for segment, fraction in progress_bar(instants, progress, desc="eval", unit="instant"):
         t = frames.time_in(segment, fraction)
         for size in sizes:
             rng = np.random.default_rng([seed, segment, int(fraction * 10), 0])  # same noise draws per size
             sample = frames.sample(t, size, rng, randomize=False)
-            conditions = ["all", *condition_of(sample.meta["scenario"])]
-            if size in RESOLUTIONS:
-                evaluation.add_resolution(sample, conditions)
-            if size == tuple(attribution_size):
-                evaluation.add_attributed(sample, conditions)
+            yield sample, ["all", *condition_of(sample.meta["scenario"])]
+
+
+def evaluate_sim(detector: FusionDetector, per_scenario: int, attribution_size: tuple[int, int] = (640, 360),
+                 seed: int = EVAL_SEED, progress: bool = False,
+                 attribution_threshold: float = OPERATING_THRESHOLD) -> dict:
+    """Held-out simulated instants, ``per_scenario`` of each scenario, at every RGB resolution."""
+    from respecd.lab.detector.simdata import RESOLUTIONS
+
+    sizes: list[tuple[int, int]] = sorted({*RESOLUTIONS, (attribution_size[0], attribution_size[1])})
+    evaluation = Evaluation(detector, attribution_threshold)
+    for sample, conditions in sim_instants(detector, per_scenario, seed, sizes, progress):
+        size = (sample.planes.shape[2], sample.planes.shape[1])
+        if size in RESOLUTIONS:
+            evaluation.add_resolution(sample, conditions)
+        if size == tuple(attribution_size):
+            evaluation.add_attributed(sample, conditions)
     return {**evaluation.report(), "world_seed": seed}
