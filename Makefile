@@ -42,8 +42,8 @@ bench-peers: install
 # 1.8-2x (near, frame-cut people whole) and radar-only scenes come more often; then three where each RGB size has
 # its own strip zoom and 640x360 / 1280x720 strips are drawn more often. ~9240 CPU-s in all (the shipped base
 # stage was trained before daylight crossover: equivalent, not bit-identical). Last, `respecd calibrate` fits the
-# confidence calibration per RGB size on one validation world and checks it on another (3.5 min; docs/PERCEPTION.md
-# "Confidence calibration").
+# confidence calibration per RGB size on a validation world (add --check-seed 3000003 to score it on
+# a second world: docs/PERCEPTION.md "Confidence calibration").
 STRIPS := --keep-cut 0.4 --radar-alone 0.18
 CURTAIN_AND_CUT := --scenario-weight behind-curtain=4,occlusion-partial=3
 # extra flags for every stage, e.g. WEIGHTS_FLAGS="--precision bf16 --threads 2": 47.7 min from a clean clone,
@@ -75,7 +75,7 @@ weights: install
 	  $(STRIPS) $(SIZE_ZOOMS) $(CURTAIN_AND_CUT) \
 	  --resolution-weight 640x360=2,1280x720=3 --out build/sim-rover-sizes.pt
 	$(BIN)/respecd calibrate --weights build/sim-rover-sizes.pt --out respecd/perception/weights/sim-rover.pt \
-	  --seed 2000003 --check-seed 3000003 --no-progress
+	  --seed 2000003 --no-progress
 
 # builtin:rgbt (configs/spec-rover.yaml): Yolo-Fastest 1.1 body (RGB backbone and head, as trained on real photos)
 # with Yolo-Fastest xl's backbone on thermal at half resolution; only the 1x1 convolutions mapping xl's features
