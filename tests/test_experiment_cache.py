@@ -50,6 +50,19 @@ def test_fingerprint_changes_with_checkpoint_and_settings(profile) -> None:
     assert fingerprint(model_hash(a.model), ident) != fingerprint(model_hash(a.model), stricter)
 
 
+def test_fingerprint_changes_with_the_confidence_calibration(profile) -> None:
+    """The calibration rides in the checkpoint beside the weights, not in the state dict."""
+    from respecd.perception.calibration import ScoreCalibration
+
+    detector = load_detector(profile, random_init=True, seed=1)
+    weights = model_hash(detector.model)
+    raw = fingerprint(weights, perception_identity(detector, profile))
+    detector.model.score_calibration = ScoreCalibration({"640x360": (1.5, 1.9)})
+    calibrated = fingerprint(weights, perception_identity(detector, profile))
+    detector.model.score_calibration = ScoreCalibration({"640x360": (1.5, 2.0)})
+    assert len({raw, calibrated, fingerprint(weights, perception_identity(detector, profile))}) == 3
+
+
 def test_fingerprint_covers_the_code_of_every_stored_field() -> None:
     """An outcome stores the feature extractor's luminance and motion: the modules that
     compute them must be in the fingerprint, or a change to them would replay stale values."""
@@ -59,9 +72,10 @@ def test_fingerprint_covers_the_code_of_every_stored_field() -> None:
     from respecd.control import features, imagestats
     from respecd.lab.experiment import outcomes
     from respecd.lab.experiment.cache import SOURCE_MODULES
+    from respecd.perception import calibration
 
     fingerprinted = {(package, name) for package, names in SOURCE_MODULES.items() for name in names}
-    for module in (features, imagestats, outcomes):
+    for module in (features, imagestats, outcomes, calibration):
         package, name = module.__name__.rsplit(".", 1)[0], PurePath(inspect.getfile(module)).name
         assert (package, name) in fingerprinted, module.__name__
 

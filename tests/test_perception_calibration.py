@@ -99,9 +99,9 @@ def test_calibrate_command_writes_the_map_beside_unchanged_weights(tmp_path: Pat
     assert set(payload["score_calibration"]) == {"640x360", "960x540", "1280x720"}
     card = json.loads(out.with_suffix(".json").read_text())
     assert card["score_calibration"]["table"] == payload["score_calibration"]
-    assert card["score_calibration"]["seed"] == 7 and card["checkpoint_bytes"] == out.stat().st_size
+    assert card["score_calibration"]["fit"]["seed"] == 7 and card["checkpoint_bytes"] == out.stat().st_size
     report = json.loads((tmp_path / "cal.json").read_text())
-    for size, row in report["fit"].items():
+    for size, row in report["fit"]["sizes"].items():
         assert row["a"] > 0 and 0 <= row["ece_calibrated"] <= 1 and row["boxes"] >= row["matched"] > 0, size
     assert "| fit 7 | 640x360 |" in capsys.readouterr().out
     detector = FusionDetector.load(PerceptionConfig(weights=str(out)))

@@ -56,11 +56,11 @@ def main(args: argparse.Namespace) -> int:
     detector = FusionDetector(model, config)
     images = calibrate.resolution_images(detector, args.frames, args.seed, progress=not args.quiet)
     calibration = calibrate.fit(images)
-    report = {"seed": args.seed, "frames_per_scenario": args.frames,
-              "fit": calibrate.measure(images, calibration)}
+    report = {"frames_per_scenario": args.frames,
+              "fit": {"seed": args.seed, "sizes": calibrate.measure(images, calibration)}}
     if args.check_seed is not None:
         held_out = calibrate.resolution_images(detector, args.frames, args.check_seed, progress=not args.quiet)
-        report["check"] = {"seed": args.check_seed, **calibrate.measure(held_out, calibration)}
+        report["check"] = {"seed": args.check_seed, "sizes": calibrate.measure(held_out, calibration)}
     report["command"] = "respecd " + " ".join(sys.argv[1:])
     checkpoint.save_payload(args.out, {**payload, "score_calibration": calibration.to_payload()})
     _write_card(source, args.out, calibration.to_payload(), report)
@@ -76,15 +76,12 @@ def table(report: dict) -> str:
     """Markdown: per size, the map and what it does at the daemon's threshold (fit world, then check world)."""
     lines = ["| world | size | a | b | boxes (matched) | raw confidence at the threshold | calibration error raw → "
              "calibrated | delivered mAP@0.5 raw → calibrated |", "|---|---|---:|---:|---:|---:|---:|---:|"]
-    for label, part in (("fit", report["fit"]), ("check", report.get("check"))):
-        if part is None:
-            continue
-        seed = report["seed"] if label == "fit" else part["seed"]
-        for size, m in part.items():
-            if size == "seed":
-                continue
-            lines.append(f"| {label} {seed} | {size} | {m['a']:.3f} | {m['b']:.3f} | {m['boxes']} ({m['matched']}) | "
-                         f"{m['raw_confidence_at_threshold']:.3f} | {m['ece_raw']:.3f} → {m['ece_calibrated']:.3f} | "
+    for label in ("fit", "check"):
+        part = report.get(label)
+        for size, m in part["sizes"].items() if part else ():
+            lines.append(f"| {label} {part['seed']} | {size} | {m['a']:.3f} | {m['b']:.3f} | "
+                         f"{m['boxes']} ({m['matched']}) | {m['raw_confidence_at_threshold']:.3f} | "
+                         f"{m['ece_raw']:.3f} → {m['ece_calibrated']:.3f} | "
                          f"{m['delivered_map50_raw']:.3f} → {m['delivered_map50_calibrated']:.3f} |")
     return "\n".join(lines)
 

@@ -43,7 +43,11 @@ def perception_identity(detector: Any, profile: Any) -> dict[str, Any]:
                                                                 "attribution_every_s"})
     calibration = {k: (v.model_dump(mode="json") if v is not None else None)
                    for k, v in calibration_from_profile(profile).items()}
-    return {"settings": settings, "calibration": calibration}
+    identity = {"settings": settings, "calibration": calibration}
+    scores = getattr(detector.model, "score_calibration", None)  # not in the state dict: the card's, per RGB size
+    if scores is not None:
+        identity["score_calibration"] = scores.to_payload()
+    return identity
 
 
 def make_evaluator(detector: Any, profile: Any, use_cache: bool = True, directory: Path | None = None) -> Evaluator:
