@@ -77,8 +77,8 @@ def table(report: dict) -> str:
     lines = ["| world | size | a | b | boxes (matched) | raw confidence at the threshold | calibration error raw → "
              "calibrated | delivered mAP@0.5 raw → calibrated |", "|---|---|---:|---:|---:|---:|---:|---:|"]
     for label in ("fit", "check"):
-        part = report.get(label)
-        for size, m in part["sizes"].items() if part else ():
+        part: dict = report.get(label) or {"sizes": {}}
+        for size, m in part["sizes"].items():
             lines.append(f"| {label} {part['seed']} | {size} | {m['a']:.3f} | {m['b']:.3f} | "
                          f"{m['boxes']} ({m['matched']}) | {m['raw_confidence_at_threshold']:.3f} | "
                          f"{m['ece_raw']:.3f} → {m['ece_calibrated']:.3f} | "
