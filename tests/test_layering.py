@@ -10,8 +10,8 @@ import ast
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-# the CLI's front-ends to the tooling: `respecd train|eval|train-policy|bench`
-LAB_COMMANDS = {"train.py", "eval.py", "train_policy.py", "bench.py"}
+# the CLI's front-ends to the tooling: `respecd train|eval|calibrate|train-policy|bench`
+LAB_COMMANDS = {"train.py", "eval.py", "calibrate.py", "train_policy.py", "bench.py"}
 LAB_EXTRA = ("matplotlib", "tqdm")
 
 
