@@ -14,12 +14,13 @@ threshold and what ConfAgg reads. A checkpoint without a calibration keeps its r
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
-from respecd.errors import ConfigError
+from respecd.cli.args import resolution
+from respecd.errors import ConfigError, InputError
 from respecd.perception.boxes import pad_to_stride
 
 EPS = 1e-6  # confidences are clipped to [EPS, 1 - EPS] before the logit
@@ -30,6 +31,15 @@ class ScoreCalibration:
     """Platt parameters per RGB frame size ``"WxH"``; another size uses the nearest calibrated height."""
 
     by_size: dict[str, tuple[float, float]]
+    # (padded input height, (a, b)) per size, worked out once: ``params`` runs on every inference
+    _by_height: tuple[tuple[int, tuple[float, float]], ...] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        heights = []
+        for size, params in self.by_size.items():
+            w, h = resolution(size, "score_calibration")
+            heights.append((pad_to_stride(h, w)[0], params))
+        object.__setattr__(self, "_by_height", tuple(heights))
 
     @classmethod
     def from_payload(cls, table: object, source: str) -> ScoreCalibration:
@@ -38,7 +48,7 @@ class ScoreCalibration:
             raise ConfigError(f"{source}: score_calibration: expected a mapping of 'WxH' to [a, b]")
         by_size = {}
         for size, params in table.items():
-            if not (isinstance(size, str) and _frame_size(size) and isinstance(params, (list, tuple))
+            if not (isinstance(size, str) and _is_frame_size(size) and isinstance(params, (list, tuple))
                     and len(params) == 2 and all(isinstance(v, (int, float)) and math.isfinite(v) for v in params)):
                 raise ConfigError(f"{source}: score_calibration.{size}: expected 'WxH': [a, b] with finite numbers")
             if params[0] <= 0:
@@ -53,11 +63,7 @@ class ScoreCalibration:
     def params(self, input_hw: tuple[int, ...]) -> tuple[float, float]:
         """(a, b) for a padded network input of height/width ``input_hw``: the size whose padded height
         is nearest (the three sizes the controller chooses pad to 384, 544 and 736)."""
-        def distance(size: str) -> int:
-            w, h = _frame_size(size) or (0, 0)
-            return abs(pad_to_stride(h, w)[0] - input_hw[0])
-
-        return self.by_size[min(self.by_size, key=distance)]
+        return min(self._by_height, key=lambda entry: abs(entry[0] - input_hw[0]))[1]
 
     def apply(self, scores: torch.Tensor, input_hw: tuple[int, ...]) -> torch.Tensor:
         """Calibrated confidences, same shape; raw ones come from a net's ``decode``."""
@@ -118,10 +124,10 @@ def expected_calibration_error(scores: np.ndarray, is_true: np.ndarray, bins: in
     return float(error / len(scores))
 
 
-def _frame_size(size: str) -> tuple[int, int] | None:
-    """'640x360' -> (640, 360); None for anything else."""
+def _is_frame_size(size: str) -> bool:
+    """'640x360' and the like (``cli.args.resolution``'s rule)."""
     try:
-        w, h = (int(v) for v in size.split("x"))
-    except ValueError:
-        return None
-    return (w, h) if w > 0 and h > 0 else None
+        resolution(size, "score_calibration")
+    except InputError:
+        return False
+    return True

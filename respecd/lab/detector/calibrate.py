@@ -32,7 +32,7 @@ def resolution_images(detector: FusionDetector, per_scenario: int, seed: int,
                       progress: bool = False) -> dict[str, list[ImageResult]]:
     """Per RGB size ("WxH"), one result per held-out instant of world ``seed``, every sensor on."""
     evaluation = Evaluation(detector)
-    for sample, conditions in sim_instants(detector, per_scenario, seed, list(RESOLUTIONS), progress):
+    for _, sample, conditions in sim_instants(detector, per_scenario, seed, list(RESOLUTIONS), progress):
         evaluation.add_resolution(sample, conditions[:1])  # "all" only
     return {size: by["all"] for size, by in evaluation.by_resolution.items()}
 

@@ -255,9 +255,9 @@ def evaluate_samples(detector: FusionDetector, samples, progress: bool = False,
 
 
 def sim_instants(detector: FusionDetector, per_scenario: int, seed: int, sizes: list[tuple[int, int]],
-                 progress: bool = False) -> Iterator[tuple[Sample, list[str]]]:
+                 progress: bool = False) -> Iterator[tuple[tuple[int, int], Sample, list[str]]]:
     """Held-out simulated instants, ``per_scenario`` of each scenario (two per scenario run), each
-    rendered at every size in ``sizes`` with the same noise draws: (sample, its conditions)."""
+    rendered at every size in ``sizes`` with the same noise draws: (size, sample, its conditions)."""
     from respecd.lab.detector.data import progress as progress_bar
     from respecd.lab.detector.simdata import SimFrames, condition_of
 
@@ -270,7 +270,7 @@ def sim_instants(detector: FusionDetector, per_scenario: int, seed: int, sizes: 
         for size in sizes:
             rng = np.random.default_rng([seed, segment, int(fraction * 10), 0])  # same noise draws per size
             sample = frames.sample(t, size, rng, randomize=False)
-            yield sample, ["all", *condition_of(sample.meta["scenario"])]
+            yield size, sample, ["all", *condition_of(sample.meta["scenario"])]
 
 
 def evaluate_sim(detector: FusionDetector, per_scenario: int, attribution_size: tuple[int, int] = (640, 360),
@@ -281,8 +281,7 @@ def evaluate_sim(detector: FusionDetector, per_scenario: int, attribution_size: 
 
     sizes: list[tuple[int, int]] = sorted({*RESOLUTIONS, (attribution_size[0], attribution_size[1])})
     evaluation = Evaluation(detector, attribution_threshold)
-    for sample, conditions in sim_instants(detector, per_scenario, seed, sizes, progress):
-        size = (sample.planes.shape[2], sample.planes.shape[1])
+    for size, sample, conditions in sim_instants(detector, per_scenario, seed, sizes, progress):
         if size in RESOLUTIONS:
             evaluation.add_resolution(sample, conditions)
         if size == tuple(attribution_size):
