@@ -9,7 +9,7 @@ from respecd.control.actions import ActionSpace, Slot
 from respecd.control.config import ControllerConfig, Learning, RewardWeights, Thresholds
 from respecd.control.controller import Controller
 from respecd.control.qlearning import FactoredQTable, QTable
-from respecd.control.reward import reward_terms, sensing_delay, sensor_power
+from respecd.control.reward import reward_terms, sensing_delay, sensor_power, slowest_delay
 from respecd.control.state import Observation, StateSpace
 from respecd.messages import SensorConfig
 from respecd.sensors import SensorPower
@@ -419,3 +419,14 @@ def test_a_sensor_the_detector_does_not_read_learns_its_cheapest_rate_through_qu
     shared = [_learns_cheapest_depth_rate("shared", seed) for seed in range(20)]
     assert all(per_sensor)
     assert not all(shared)  # with the whole reward, the noise of quality outvotes depth's price in some runs
+
+
+def test_slowest_delay_is_the_slowest_detector_input_whatever_it_contributes() -> None:
+    rgb = SensorConfig("rgb", rate_hz=1.0, resolution=(640, 360))
+    thermal = SensorConfig("thermal", rate_hz=9.0, resolution=(160, 120))
+    depth = SensorConfig("depth", rate_hz=0.5, resolution=(640, 480))  # not read by the detector
+    off = SensorConfig("radar", enabled=False, rate_hz=0.2, mode="range")
+    inputs = ("rgb", "thermal", "radar")
+    assert slowest_delay([rgb, thermal, depth, off], inputs) == pytest.approx(0.5)
+    assert slowest_delay([thermal], inputs) == pytest.approx(0.5 / 9)
+    assert slowest_delay([depth, off], inputs) == 0.0

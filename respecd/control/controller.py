@@ -29,6 +29,7 @@ from respecd.control.reward import (
     sensing_delay,
     sensor_costs,
     sensor_power,
+    slowest_delay,
 )
 from respecd.control.state import Observation, StateSpace, motion_bin
 from respecd.messages import Decision, SensorConfig
@@ -126,7 +127,10 @@ class Controller:
         if power is None:  # no rails: the sensors' model plus the detector's compute
             power = self._model_power(applied) + compute_power(obs.busy, self.config.reward.compute_w)
         running = tuple(applied.values()) if applied else self.space.requests(self.position)
-        delay = sensing_delay(running, obs.contributions)
+        if self.config.reward.delay == "slowest":
+            delay = slowest_delay(running, self.detector_inputs)
+        else:
+            delay = sensing_delay(running, obs.contributions)
         motion = motion_bin(obs, self.states.thresholds)
         bandwidth = sensing_bandwidth(running, obs.radar_points)
         terms = reward_terms(self.config.reward, self._prev_conf, obs.conf_agg, power, obs.latency_s, self._switched,

@@ -18,7 +18,8 @@ about 7× the standard deviation) and, since the table's state does not hold C_{
 switch up to a richer configuration in one state and charges the switch back in another.
 
 D is the sensing delay: the mean age of a scene change when its first frame is taken, half a
-frame period, averaged over the detector's inputs by their contribution. Its weight σ_m
+frame period, averaged over the detector's inputs by their contribution (``delay: contribution``)
+or the slowest input's (``delay: slowest``). Its weight σ_m
 depends on the motion bin: ConfAgg cannot see staleness (a detector is as sure of where a
 person *was* as of where they are), so without this term nothing pays for a fast rate and
 the compute term alone drives every sensor to 1 Hz, however fast the scene moves.
@@ -79,6 +80,15 @@ def sensing_delay(configs: Iterable[SensorConfig], contributions: Mapping[str, f
     if total <= 0.0:
         weights, total = dict.fromkeys(periods, 1.0), float(len(periods))
     return sum(periods[m] * w for m, w in weights.items()) / total
+
+
+def slowest_delay(configs: Iterable[SensorConfig], inputs: Iterable[str]) -> float:
+    """Half the frame period of the slowest running input among ``inputs`` (the modalities the
+    detector reads); 0 when none runs. The detector fuses every frame it gets, so a stale frame
+    of a modality it barely credits still pulls its boxes back to where people were
+    (``reward.delay: slowest``; docs/CONTROLLER.md "Reward")."""
+    read = set(inputs)
+    return max((0.5 / c.rate_hz for c in configs if c.enabled and c.rate_hz > 0 and c.modality in read), default=0.0)
 
 
 def reward_terms(
