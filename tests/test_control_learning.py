@@ -258,6 +258,22 @@ def test_controller_charges_a_slow_camera_only_when_the_scene_moves() -> None:
     assert fast.terms["staleness"] == pytest.approx(-4.0 * 0.5)
 
 
+@pytest.mark.parametrize(("delay", "expected"), [("contribution", 0.9 * 0.5 / 9 + 0.1 * 0.5), ("slowest", 0.5)])
+def test_controller_delay_weights_the_stale_camera_by_its_contribution_or_fully(delay: str, expected: float) -> None:
+    reward = RewardWeights(staleness=(0.0, 2.0, 4.0), delay=delay)
+    config = ControllerConfig(factors=("motion",), contribution="none", min_dwell_s=0.0, reward=reward,
+                              learning=Learning(init="zero"))
+    slots = (Slot("cam", "rgb", ((640, 360),), (1.0,)), Slot("ir", "thermal", ((160, 120),), (9.0,)))
+    controller = Controller(config, ActionSpace(slots, "product"), StateSpace(config.factors, Thresholds()),
+                            detector_inputs=("rgb", "thermal"))
+    controller.follow({"cam": SensorConfig("rgb", rate_hz=1.0, resolution=(640, 360)),
+                       "ir": SensorConfig("thermal", rate_hz=9.0, resolution=(160, 120))})
+    fast = controller.step(Observation(t=0.0, n_percepts=1, motion_image=20.0,
+                                       contributions={"rgb": 0.1, "thermal": 0.9}))
+    assert fast.terms["delay_s"] == pytest.approx(expected)
+    assert fast.terms["staleness"] == pytest.approx(-4.0 * expected)
+
+
 def test_default_reward_is_the_papers_change_term_as_a_level() -> None:
     """alpha x (C_t - C_t-1) = alpha (1 - discount) C_t + discount x alpha C_t - alpha C_t-1: the default
     charges the level with the weight that leaves the same optimal policy, and nothing for the change."""

@@ -102,8 +102,9 @@ class RewardWeights(StrictModel):
         (0.0, 2.0, 4.0),
         description="Weight per second of sensing delay, by motion bin still / slow / fast. Sensing delay is how "
         "old a scene change is, on average, when its first frame is taken (half the frame period), averaged over "
-        "the detector's inputs by their contribution (or the slowest input's, see delay): a slow sensor costs in proportion to how fast the scene "
-        "moves and how much the detector relies on it. (0, 0, 0) is the paper's reward.",
+        "the detector's inputs by their contribution (or the slowest input's, see delay): a slow sensor costs in "
+        "proportion to how fast the scene moves and how much the detector relies on it. (0, 0, 0) is the paper's "
+        "reward.",
     )
     delay: Literal["contribution", "slowest"] = Field(
         "contribution",
