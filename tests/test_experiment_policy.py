@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -332,3 +333,63 @@ def test_table_choice_counts_criteria_then_accuracy_then_compute(tmp_path: Path)
     assert choose({"A": a, "C": c}) == "C"  # 0.003 apart is a tie on accuracy; C cuts more compute
     c = _run([True, True, False, False, False], 0.69, 0.60)
     assert choose({"A": a, "C": c}) == "A"  # 0.010 more accurate wins before compute
+
+
+def test_fixed_configuration_parses_every_input_and_off() -> None:
+    from respecd.lab.experiment.fixed import parse_configuration
+
+    configs = parse_configuration("rgb 640x360@off thermal 160x120@9 radar velocity@2.5")
+    assert configs["rgb"].enabled is False and configs["rgb"].resolution == (640, 360)
+    assert configs["thermal"].rate_hz == 9.0 and configs["thermal"].resolution == (160, 120)
+    assert configs["radar"].mode == "velocity" and configs["radar"].rate_hz == 2.5 and configs["radar"].enabled
+
+
+@pytest.mark.parametrize(("text", "says"), [
+    ("thermal 160x120@9", "expected an rgb entry"),
+    ("rgb 640x360@1 radar", "expected pairs"),
+    ("rgb 640x360", "SETTING@RATE"),
+    ("rgb 640x360@1 rgb 960x540@1", "once each"),
+    ("rgb 640x360@fast", "expected a rate in Hz or off"),
+    ("rgb 640x360@0", "expected a rate in (0, 60] Hz"),
+    ("rgb 640x360@1 radar doppler@5", "expected a mode of range, velocity"),
+    ("rgb 640by360@1", "expected WIDTHxHEIGHT"),
+])
+def test_fixed_configuration_refuses_what_it_cannot_run(text: str, says: str) -> None:
+    from respecd.lab.experiment.fixed import parse_configuration
+
+    with pytest.raises(InputError, match=re.escape(says)):
+        parse_configuration(text)
+
+
+def test_fixed_instants_fall_inside_their_second_at_seeded_phases() -> None:
+    from respecd.lab.experiment.fixed import instants
+
+    points = instants(7, 3.0, 2)
+    assert [k for k, _ in points] == [0, 0, 1, 1, 2, 2]
+    assert all(k + j / 2 < t < k + (j + 1) / 2 for (k, t), j in zip(points, [0, 1] * 3, strict=True))
+    assert points == instants(7, 3.0, 2) and points != instants(8, 3.0, 2)
+
+
+def test_fixed_scores_each_configuration_on_the_same_worlds(profile_path: Path, tmp_path: Path, capsys) -> None:
+    from respecd.lab.experiment.fixed import main
+
+    out = tmp_path / "fixed.json"
+    code = main(["poor-light-moving", "rgb 640x360@1 thermal 160x120@9 radar range@1",
+                 "rgb 640x360@off thermal 160x120@9 radar range@1", "--seeds", "3,10", "--duration", "2",
+                 "--profile", str(profile_path), "--random-detector", "--cache-dir", str(tmp_path), "--json", str(out)])
+    assert code == 0
+    doc = json.loads(out.read_text())
+    assert doc["seeds"] == [3, 10] and len(doc["configurations"]) == 2
+    for row in doc["configurations"].values():
+        assert len(row["map50_by_world"]) == 2 and 0.0 <= row["map50"] <= 1.0 and 0.0 <= row["conf_agg"] <= 1.0
+    assert "mAP@0.5" in capsys.readouterr().out
+
+
+def test_fixed_bad_configuration_exits_2_without_a_traceback() -> None:
+    result = subprocess.run([sys.executable, "-m", "respecd.lab.experiment.fixed", "smoke",
+                             "rgb 640x360@1", "--seeds", "1"], capture_output=True, text=True)
+    assert result.returncode == 2 and "invalid choice: 'smoke'" in result.stderr
+    result = subprocess.run([sys.executable, "-m", "respecd.lab.experiment.fixed", "occlusion-smoke",
+                             "thermal 160x120@9", "--seeds", "1"], capture_output=True, text=True)
+    assert result.returncode == 2 and "fixed: configuration 'thermal 160x120@9': expected an rgb entry" in result.stderr
+    assert "Traceback" not in result.stderr
