@@ -393,3 +393,14 @@ def test_fixed_bad_configuration_exits_2_without_a_traceback() -> None:
                              "thermal 160x120@9", "--seeds", "1"], capture_output=True, text=True)
     assert result.returncode == 2 and "fixed: configuration 'thermal 160x120@9': expected an rgb entry" in result.stderr
     assert "Traceback" not in result.stderr
+
+
+def test_fixed_off_leaves_the_input_out_of_the_detectors_frames(profile_path: Path) -> None:
+    from respecd.lab.experiment.fixed import parse_configuration
+
+    evaluator = make_evaluator(load_detector(load_profile(profile_path), random_init=True), load_profile(profile_path),
+                               use_cache=False)
+    both = evaluator.frame_ids(parse_configuration("rgb 640x360@5 thermal 160x120@9 radar range@10"), 1.3)
+    no_rgb = evaluator.frame_ids(parse_configuration("rgb 640x360@off thermal 160x120@9 radar range@10"), 1.3)
+    assert set(both) == {"rgb", "thermal", "radar"} and set(no_rgb) == {"thermal", "radar"}
+    assert no_rgb["thermal"] == both["thermal"]  # the other inputs deliver the same frames
