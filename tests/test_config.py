@@ -89,6 +89,17 @@ def test_resolution_candidates_differ_from_e_only_in_latency_and_quality_weights
     assert h["confidence_level"] == pytest.approx(3 * e["confidence_level"])
 
 
+def test_slowest_delay_candidates_differ_from_theirs_only_in_the_delay_and_the_slow_bins_price():
+    _, f = _ablation_difference("sim-rover-per-sensor", "reward")
+    _, e = _ablation_difference("sim-rover-per-sensor-free-bandwidth", "reward")
+    _, s = _ablation_difference("sim-rover-per-sensor-slowest", "reward")
+    _, se = _ablation_difference("sim-rover-per-sensor-free-bandwidth-slowest", "reward")
+    _, se44 = _ablation_difference("sim-rover-per-sensor-free-bandwidth-slowest-44", "reward")
+    assert f["delay"] == e["delay"] == "contribution"
+    assert s == {**f, "delay": "slowest"} and se == {**e, "delay": "slowest"}
+    assert se["staleness"] == (0.0, 2.0, 4.0) and se44 == {**se, "staleness": (0.0, 4.0, 4.0)}
+
+
 def test_heavy_bandwidth_candidate_differs_from_sim_rover_only_in_the_bandwidth_weight():
     base_reward, candidate_reward = _ablation_difference("sim-rover-heavy-bandwidth", "reward")
     assert candidate_reward == {**base_reward, "bandwidth": 3 * base_reward["bandwidth"]}
