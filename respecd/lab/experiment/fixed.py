@@ -24,7 +24,7 @@ import numpy as np
 from respecd.cli.args import resolution
 from respecd.errors import InputError
 from respecd.lab.detector.metrics import ImageResult, average_precision
-from respecd.messages import SensorConfig, conf_agg
+from respecd.messages import SensorConfig
 
 MODES = ("range", "velocity")
 
@@ -91,11 +91,11 @@ def score(evaluator: Any, simulation: Any, scenario: str, seeds: list[int], conf
         world = evaluator.world(piece, simulation)
         static = evaluator.static(piece)
         images = []
-        for n, (k, t) in enumerate(instants(seed, duration_s, per_s)):
-            out = evaluator.outcome(world, configs, t, False, k * per_s + n % per_s if static else None)
+        for n, (_, t) in enumerate(instants(seed, duration_s, per_s)):
+            out = evaluator.outcome(world, configs, t, False, n if static else None)  # n: the static scene's noise slot
             boxes, ignore = evaluator.truth(world, t, size)
             images.append(ImageResult(out.boxes, out.scores, boxes, ignore))
-            confs.append(conf_agg(out.scores.tolist()))
+            confs.append(out.conf_agg)  # the detector's own ConfAgg of these boxes
         per_world.append(average_precision(images, 0.5))
         pooled.extend(images)
     return Scored(average_precision(pooled, 0.5), float(np.mean(confs)), tuple(per_world))
