@@ -89,7 +89,7 @@ def test_resolution_candidates_differ_from_e_only_in_latency_and_quality_weights
     assert h["confidence_level"] == pytest.approx(3 * e["confidence_level"])
 
 
-def test_slowest_delay_candidates_differ_from_theirs_only_in_the_delay_and_the_slow_bins_price():
+def test_slowest_delay_candidates_differ_from_their_parents_only_in_what_each_adds():
     _, f = _ablation_difference("sim-rover-per-sensor", "reward")
     _, e = _ablation_difference("sim-rover-per-sensor-free-bandwidth", "reward")
     _, s = _ablation_difference("sim-rover-per-sensor-slowest", "reward")
@@ -98,6 +98,11 @@ def test_slowest_delay_candidates_differ_from_theirs_only_in_the_delay_and_the_s
     assert f["delay"] == e["delay"] == "contribution"
     assert s == {**f, "delay": "slowest"} and se == {**e, "delay": "slowest"}
     assert se["staleness"] == (0.0, 2.0, 4.0) and se44 == {**se, "staleness": (0.0, 4.0, 4.0)}
+    _, s44 = _ablation_difference("sim-rover-per-sensor-slowest-44", "reward")
+    _, m44 = _ablation_difference("sim-rover-per-sensor-slowest-44-immediate", "reward")
+    assert s["bandwidth"] > 0 and s44 == {**s, "staleness": (0.0, 4.0, 4.0)}
+    assert s44 == {**se44, "bandwidth": s["bandwidth"]}
+    assert s44["unread"] == "bootstrap" and m44 == {**s44, "unread": "immediate"}
 
 
 def test_heavy_bandwidth_candidate_differs_from_sim_rover_only_in_the_bandwidth_weight():

@@ -131,6 +131,15 @@ class RewardWeights(StrictModel):
         "alone, since nothing else in the reward depends on it (difference rewards for independent learners). "
         "Product and moves tables always learn from the whole reward.",
     )
+    unread: Literal["bootstrap", "immediate"] = Field(
+        "bootstrap",
+        description="Per-sensor credit: how the block of a sensor the detector does not read learns. bootstrap: as "
+        "every block, its reward plus the discounted best value of the next state. immediate: its reward alone "
+        "(discount 0). Its reward is its own costs, which depend on its own setting only, and its setting does not "
+        "change what the detector sees, so its cheapest setting is the best in every state; bootstrapping adds only "
+        "the next state's estimation noise - an optimistic, barely tried state is worth 1.0 where depth's costs "
+        "differ by about 0.1 between 1 and 15 Hz (docs/CONTROLLER.md, Reward).",
+    )
 
     @model_validator(mode="after")
     def _staleness_non_negative(self) -> RewardWeights:

@@ -139,7 +139,8 @@ class Controller:
         if self.policy == "learn" and self.table is not None and self._prev_state is not None:
             if isinstance(self.table, FactoredQTable):
                 blocks = self._block_rewards(reward, applied, obs.radar_points)
-                terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state, blocks)
+                terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state, blocks,
+                                                      self._immediate_blocks())
             else:
                 terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state)
         action, target = self._choose(state, bins)
@@ -174,6 +175,14 @@ class Controller:
         costs = sensor_costs(self.config.reward, configs, self.powers, radar_points)
         read = [slot.modality in self.detector_inputs for slot in self.space.slots]
         return per_sensor_rewards(reward, costs, read)
+
+    def _immediate_blocks(self) -> list[bool] | None:
+        """Blocks that learn their reward alone: with per-sensor credit and ``reward.unread: immediate``,
+        those of the sensors the detector does not read; None: every block bootstraps."""
+        weights = self.config.reward
+        if weights.credit != "per-sensor" or weights.unread != "immediate":
+            return None
+        return [slot.modality not in self.detector_inputs for slot in self.space.slots]
 
     def _choose(self, state: int, bins: tuple[int, ...]) -> tuple[int, Position]:
         if self.policy == "static":

@@ -150,18 +150,22 @@ class FactoredQTable(QTable):
         return action
 
     def update(self, state: int, action: int, reward: float, next_state: int,
-               block_rewards: Sequence[float] | None = None) -> float:
+               block_rewards: Sequence[float] | None = None, immediate: Sequence[bool] | None = None) -> float:
         """The Watkins update of every block's chosen cell; returns the mean TD error. ``block_rewards``:
-        one reward per block (per-sensor credit) instead of ``reward`` for all."""
+        one reward per block (per-sensor credit) instead of ``reward`` for all; ``immediate``: per block,
+        learn the reward alone (discount 0) instead of bootstrapping from the next state."""
         discount = self.learning.discount
         row, following, visits = self.q[state], self.q[next_state].tolist(), self.visits[state]
         rewards = [reward] * len(self.blocks) if block_rewards is None else list(block_rewards)
-        if len(rewards) != len(self.blocks):
-            raise ValueError(f"{len(rewards)} block rewards for {len(self.blocks)} blocks")
+        myopic = [False] * len(self.blocks) if immediate is None else list(immediate)
+        if len(rewards) != len(self.blocks) or len(myopic) != len(self.blocks):
+            raise ValueError(f"{len(rewards)} block rewards, {len(myopic)} immediate flags "
+                             f"for {len(self.blocks)} blocks")
         total = 0.0
-        for (start, end), cell, r in zip(self._spans, self.cells(action), rewards, strict=True):
+        for (start, end), cell, r, now in zip(self._spans, self.cells(action), rewards, myopic, strict=True):
             column = start + cell
-            error = r + discount * max(following[start:end]) - float(row[column])
+            future = 0.0 if now else discount * max(following[start:end])
+            error = r + future - float(row[column])
             visits[column] += 1
             row[column] += self.step(int(visits[column])) * error
             total += error
