@@ -138,7 +138,7 @@ class RewardWeights(StrictModel):
         "(discount 0). Its reward is its own costs, which depend on its own setting only, and its setting does not "
         "change what the detector sees, so its cheapest setting is the best in every state; bootstrapping adds only "
         "the next state's estimation noise - an optimistic, barely tried state is worth 1.0 where depth's costs "
-        "differ by about 0.1 between 1 and 15 Hz (docs/CONTROLLER.md, Reward).",
+        "differ by about 0.1 between 1 and 15 Hz (docs/CONTROLLER.md, Per-sensor credit).",
     )
 
     @model_validator(mode="after")
