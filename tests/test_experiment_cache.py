@@ -138,6 +138,25 @@ def test_outcome_is_computed_once_and_replayed(profile, tmp_path: Path) -> None:
     reopened.close()
 
 
+def test_a_computed_outcome_is_the_one_a_later_run_replays(tmp_path: Path) -> None:
+    """The cache keeps boxes to 0.01 px and scores to 1e-5; a run that computes an outcome must use those values
+    too, or a run with misses and one from the cache score a box at the IoU or ranking edge differently."""
+    profile = load_profile("builtin:sim-rover")
+    detector = load_detector(profile)  # the shipped net: real detections to round
+    fp = fingerprint(model_hash(detector.model), perception_identity(detector, profile))
+    cache = OutcomeCache(tmp_path / "o.sqlite")
+    evaluator = Evaluator(detector, cache, fp)
+    world = Rollout(profile, evaluator, {}).world(Piece("good-light-static", 3, 5.0))
+    configs = {"rgb": SensorConfig("rgb", rate_hz=1.0, resolution=(640, 360)),
+               "thermal": SensorConfig("thermal", rate_hz=1.0, resolution=(160, 120))}
+    computed = evaluator.outcome(world, configs, 1.0, attribute=False)
+    assert cache.misses == 1 and len(computed.scores) > 0
+    cache.close()
+    replayed = Evaluator(detector, OutcomeCache(tmp_path / "o.sqlite"), fp).outcome(world, configs, 1.0, False)
+    assert np.array_equal(replayed.boxes, computed.boxes) and np.array_equal(replayed.scores, computed.scores)
+    assert replayed.conf_agg == computed.conf_agg
+
+
 def test_motion_does_not_depend_on_which_rate_asked_for_a_frame_first(profile) -> None:
     """At t = 3.0 s a thermal camera at 5 Hz and one at 10 Hz deliver the same frame, but the
     motion cue compares it with the frame 0.2 s or 0.1 s before: two outcomes, whatever the
