@@ -152,7 +152,9 @@ def test_a_computed_outcome_is_the_one_a_later_run_replays(tmp_path: Path) -> No
     computed = evaluator.outcome(world, configs, 1.0, attribute=False)
     assert cache.misses == 1 and len(computed.scores) > 0
     cache.close()
-    replayed = Evaluator(detector, OutcomeCache(tmp_path / "o.sqlite"), fp).outcome(world, configs, 1.0, False)
+    reopened = OutcomeCache(tmp_path / "o.sqlite")
+    replayed = Evaluator(detector, reopened, fp).outcome(world, configs, 1.0, False)
+    reopened.close()
     assert np.array_equal(replayed.boxes, computed.boxes) and np.array_equal(replayed.scores, computed.scores)
     assert replayed.conf_agg == computed.conf_agg
 

@@ -54,6 +54,8 @@ class Controller:
         self.detector_inputs = detector_inputs  # modalities the detector reads (per-sensor credit)
         self.policy = config.policy
         self.space = space
+        # per action slot: does the detector read it (per-sensor credit and reward.unread act on this)
+        self._read = [slot.modality in detector_inputs for slot in space.slots]
         self.states = states
         self.powers = dict(powers or {})
         self.position: Position = position if position is not None else space.maximum()
@@ -173,8 +175,7 @@ class Controller:
         configs = [(slot.name, applied.get(slot.name, req) if applied else req)
                    for slot, req in zip(self.space.slots, requested, strict=True)]
         costs = sensor_costs(self.config.reward, configs, self.powers, radar_points)
-        read = [slot.modality in self.detector_inputs for slot in self.space.slots]
-        return per_sensor_rewards(reward, costs, read)
+        return per_sensor_rewards(reward, costs, self._read)
 
     def _immediate_blocks(self) -> list[bool] | None:
         """Blocks that learn their reward alone: with per-sensor credit and ``reward.unread: immediate``,
@@ -182,7 +183,7 @@ class Controller:
         weights = self.config.reward
         if weights.credit != "per-sensor" or weights.unread != "immediate":
             return None
-        return [slot.modality not in self.detector_inputs for slot in self.space.slots]
+        return [not read for read in self._read]
 
     def _choose(self, state: int, bins: tuple[int, ...]) -> tuple[int, Position]:
         if self.policy == "static":
