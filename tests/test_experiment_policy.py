@@ -16,6 +16,7 @@ import yaml
 from respecd.cli import main as cli_main
 from respecd.config import load_profile
 from respecd.control.persist import read_table, save_table
+from respecd.control.qlearning import block_spans
 from respecd.control.state import bin3
 from respecd.errors import InputError
 from respecd.lab.experiment import latency as lat
@@ -404,3 +405,56 @@ def test_fixed_off_leaves_the_input_out_of_the_detectors_frames(profile_path: Pa
     no_rgb = evaluator.frame_ids(parse_configuration("rgb 640x360@off thermal 160x120@9 radar range@10"), 1.3)
     assert set(both) == {"rgb", "thermal", "radar"} and set(no_rgb) == {"thermal", "radar"}
     assert no_rgb["thermal"] == both["thermal"]  # the other inputs deliver the same frames
+
+
+def test_pin_makes_one_column_its_sensors_choice_in_every_state(trained: Path, profile_path: Path) -> None:
+    from respecd.lab.experiment.pin import column_of, pin
+
+    controller = rl_controller(load_profile(profile_path), trained)
+    table = controller.table
+    column = column_of(controller, "radar velocity@30Hz")
+    before = table.q.copy()
+    pin(table, column)
+    visited = [s for s in range(table.q.shape[0]) if table.visits[s].any()]
+    assert visited
+    block, start = next((i, a) for i, (a, b) in enumerate(block_spans(table.blocks)) if a <= column < b)
+    for state in visited:
+        assert controller.space.descriptions()[column] in controller.space.describe(table.greedy(state))
+        assert table.cells(table.greedy_tried(state))[block] == column - start  # exploit's "tried only" choice too
+    others = [c for c in range(table.q.shape[1]) if c != column]
+    assert np.array_equal(table.q[:, others], before[:, others])  # only that column moves
+
+
+def test_pin_runs_the_table_as_trained_and_pinned_on_the_same_worlds(trained: Path, profile_path: Path,
+                                                                      tmp_path: Path, capsys) -> None:
+    from respecd.lab.experiment.pin import main
+
+    latency = tmp_path / "lat.json"
+    latency.write_text(json.dumps({"latency_ms": {"640x360": {"forward_ms": 40.0, "attribution_ms": 90.0}}}))
+    profile = load_profile(profile_path)
+    controller = rl_controller(profile, trained)
+    controller.table.visits *= 10  # two tiny episodes learn no state 5 times: exploit would only hold
+    learned = tmp_path / "learned.npz"
+    save_table(learned, controller.table, controller.layout(), {"profile": profile.name})
+    out = tmp_path / "pin.json"
+    code = main(["good-light-moving", "rgb 640x360@1Hz", "rgb 640x360@30Hz", "--seeds", "3,10", "--duration", "3",
+                 "--table", str(learned), "--profile", str(profile_path), "--latency", str(latency),
+                 "--random-detector", "--cache-dir", str(tmp_path), "--json", str(out)])
+    assert code == 0
+    runs = json.loads(out.read_text())["runs"]
+    assert list(runs) == ["as trained", "rgb 640x360@1Hz", "rgb 640x360@30Hz"]
+    windows = runs["as trained"]["windows"]
+    assert runs["as trained"]["same_states"] and all(r["windows"] == windows for r in runs.values())
+    # RGB 640x360 at 30 Hz makes 30x the pixels a second of 1 Hz: the pins reach the sensors
+    assert runs["rgb 640x360@30Hz"]["bandwidth_mb_s"] > runs["rgb 640x360@1Hz"]["bandwidth_mb_s"] + 5.0
+    assert "rgb 640x360@1Hz pinned: mAP@0.5" in capsys.readouterr().out
+
+
+def test_pin_refuses_a_column_the_table_does_not_have(trained: Path, profile_path: Path, tmp_path: Path) -> None:
+    latency = tmp_path / "lat.json"
+    latency.write_text(json.dumps({"latency_ms": {"640x360": {"forward_ms": 40.0, "attribution_ms": 90.0}}}))
+    result = subprocess.run([sys.executable, "-m", "respecd.lab.experiment.pin", "good-light-static", "rgb 960x540@1Hz",
+                             "--seeds", "1", "--table", str(trained), "--profile", str(profile_path),
+                             "--latency", str(latency)], capture_output=True, text=True)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "pin: 'rgb 960x540@1Hz' is not a column of this table; expected one of: rgb 640x360@1Hz" in result.stderr
