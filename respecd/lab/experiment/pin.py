@@ -4,9 +4,10 @@ A diagnosis beside ``fixed`` (which holds every sensor): the table chooses as it
 column of a factored table — one sensor's setting and rate, as ``respecd policy show`` names it — is taken
 wherever that sensor chooses. The run as trained and each pinned run go over the same worlds and
 instants, and for each this prints mAP@0.5, the mean reward and its terms, compute and bandwidth, and
-whether the pinned run saw the same sequence of states. Same states and a higher reward mean the table's
-own choice for that sensor is not what its reward asks for, but an artefact of how its values were learned
-(docs/RESULTS.md "Where the agent wins and where it loses").
+whether the pinned run saw the same sequence of states. Same states and a higher reward mean that on these
+worlds the table's choice for that sensor is not what its reward asks for: an artefact of how its values were
+learned, or a hedge against what the same states lead to in other worlds (a still state whose people start
+walking) — docs/RESULTS.md "Where the agent wins and where it loses".
 
 usage: python -m respecd.lab.experiment.pin good-light-static --seeds 500,507,514 \\
            --profile configs/sim-rover-per-sensor-slowest-44-immediate.yaml --latency docs/reference-latency.json \\
