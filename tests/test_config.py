@@ -184,3 +184,13 @@ def test_shipped_schema_file_is_current():
         assert profile.read_text().startswith("# yaml-language-server: $schema=profile.schema.json\n"), profile
     shipped = json.loads((REPO / "docs" / "profile.schema.json").read_text())
     assert shipped == json.loads(json.dumps(json_schema())), "run: respecd schema --out docs/profile.schema.json"
+
+
+def test_averaged_candidate_differs_from_m44_only_in_the_step_size_floor():
+    m44 = load_profile(REPO / "configs" / "sim-rover-per-sensor-slowest-44-immediate.yaml").model_dump()
+    averaged = load_profile(REPO / "configs" / "sim-rover-per-sensor-slowest-44-averaged.yaml").model_dump()
+    assert averaged.pop("name") == "sim-rover-per-sensor-slowest-44-averaged"
+    m44.pop("name")
+    m44_learning, averaged_learning = m44["controller"].pop("learning"), averaged["controller"].pop("learning")
+    assert averaged == m44
+    assert m44_learning["learning_rate"] == 0.2 and averaged_learning == {**m44_learning, "learning_rate": 0.05}
