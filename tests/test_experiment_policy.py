@@ -458,3 +458,59 @@ def test_pin_refuses_a_column_the_table_does_not_have(trained: Path, profile_pat
                              "--latency", str(latency)], capture_output=True, text=True)
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert "pin: 'rgb 960x540@1Hz' is not a column of this table; expected one of: rgb 640x360@1Hz" in result.stderr
+
+
+def test_trace_records_one_states_updates_without_changing_what_is_learned(profile_path: Path) -> None:
+    from respecd.lab.experiment.trace import Tracer
+
+    profile = load_profile(profile_path)
+    traced, plain = controller_for(profile, "learn"), controller_for(profile, "learn")
+    state_text = "bright/still/dense/medium/good/high/rgb"
+    tracer = Tracer(traced.table, traced, state_text, "rgb")
+    state = tracer.state
+    assert traced.states.describe(traced.states.unindex(state)) == state_text
+    other = (state + 1) % traced.table.q.shape[0]
+    start, end = block_spans(traced.table.blocks)[0]
+    action = traced.table.encode([1, 0, 0, 0])
+    steps = [(state, action, 0.5, other, [0.3, 0.1, 0.1, 0.0]), (other, action, 0.2, state, [0.2, 0.2, 0.2, 0.2]),
+             (state, traced.table.encode([0, 1, 1, 0]), -0.4, state, [-0.1, -0.3, 0.0, -0.2])]
+    for s, a, r, nxt, blocks in steps:
+        next_best = float(traced.table.q[nxt, start:end].max())
+        traced.table.update(s, a, r, nxt, blocks)
+        plain.table.update(s, a, r, nxt, blocks)
+        if s == state:
+            assert tracer.updates[-1].next_value == next_best
+    assert np.array_equal(traced.table.q, plain.table.q) and np.array_equal(traced.table.visits, plain.table.visits)
+    names = traced.space.descriptions()
+    assert [(u.number, u.cell, u.reward) for u in tracer.updates] == [(1, names[1], 0.3), (3, names[0], -0.1)]
+    assert tracer.updates[0].next_state == traced.states.describe(traced.states.unindex(other))
+    assert tracer.updates[1].value_after == traced.table.q[state, 0]
+
+
+def test_trace_learns_the_table_train_policy_learns(profile_path: Path, tmp_path: Path, monkeypatch, capsys) -> None:
+    from respecd.lab.experiment.trace import main
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    latency = tmp_path / "lat.json"
+    latency.write_text(json.dumps({"latency_ms": {"640x360": {"forward_ms": 40.0, "attribution_ms": 90.0}}}))
+    common = ["--random-detector", "--profile", str(profile_path), "--episodes", "1", "--seeds", "1", "--min-s", "2",
+              "--max-s", "2", "--latency", str(latency)]
+    assert cli_main(["train-policy", *common, "--out", str(tmp_path / "plain.npz")]) == 0
+    assert main(["dark/still/sparse/medium/good/low/none", "--block", "radar", *common,
+                 "--out", str(tmp_path / "traced.npz"), "--json", str(tmp_path / "trace.json")]) == 0
+    _, q_plain, v_plain = read_table(tmp_path / "plain.npz")
+    _, q_traced, v_traced = read_table(tmp_path / "traced.npz")
+    assert np.array_equal(q_plain, q_traced) and np.array_equal(v_plain, v_traced)
+    doc = json.loads((tmp_path / "trace.json").read_text())
+    assert doc["block"] == "radar" and sum(row["updates"] for row in doc["summary"]) == len(doc["updates"])
+
+
+def test_trace_refuses_a_state_that_is_not_one(profile_path: Path) -> None:
+    result = subprocess.run([sys.executable, "-m", "respecd.lab.experiment.trace", "bright/still", "--random-detector",
+                             "--profile", str(profile_path), "--episodes", "1"], capture_output=True, text=True)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "trace: state 'bright/still': expected 7 values joined by '/', for illumination, motion" in result.stderr
+    result = subprocess.run([sys.executable, "-m", "respecd.lab.experiment.trace",
+                             "bright/still/dense/medium/good/high/sonar", "--random-detector",
+                             "--profile", str(profile_path), "--episodes", "1"], capture_output=True, text=True)
+    assert result.returncode == 2 and "a value is not a bin of its factor" in result.stderr

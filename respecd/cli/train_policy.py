@@ -4,6 +4,7 @@ detector outcomes; save it where ``--policy exploit`` finds it and plot the lear
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -46,7 +47,9 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError("--samples-per-s: expected a positive number")
 
 
-def main(args: argparse.Namespace) -> int:
+def main(args: argparse.Namespace, on_table: Callable[[Any, Any], None] | None = None) -> int:
+    """``on_table(table, controller)``: sees the table and a controller of its layout before training
+    (``python -m respecd.lab.experiment.trace`` watches its updates there)."""
     from tqdm import tqdm
 
     from respecd.config import load_profile
@@ -70,6 +73,8 @@ def main(args: argparse.Namespace) -> int:
     latency_ms = lat.to_json(rollout.latency)
     print("latency (ms):", {k: round(v["forward_ms"]) for k, v in latency_ms.items()})
     table = probe.table
+    if on_table is not None:
+        on_table(table, probe)
     history: list[float] = []
     if args.resume and table is not None and load_into(out, table, probe.layout()):
         history = list(read_table(out)[0].get("episode_reward", []))
