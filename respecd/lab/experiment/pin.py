@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from respecd.control.qlearning import FactoredQTable, block_spans
-from respecd.errors import InputError
+from respecd.errors import ConfigError, InputError
 from respecd.lab.detector.metrics import average_precision
 from respecd.lab.experiment.fixed import seed_list
 
@@ -61,9 +61,9 @@ def column_of(controller: Any, name: str) -> int:
     """The table column ``name`` ('rgb 640x360@1Hz', as `respecd policy show` prints the cells)."""
     names = controller.space.descriptions()
     if controller.space.mode != "factored":
-        raise InputError("pin: the table is not factored: a sensor's choice is not a column of its own")
+        raise InputError("the table is not factored: a sensor's choice is not a column of its own")
     if name not in names:
-        raise InputError(f"pin: {name!r} is not a column of this table; expected one of: {', '.join(names)}")
+        raise InputError(f"{name!r} is not a column of this table; expected one of: {', '.join(names)}")
     return names.index(name)
 
 
@@ -131,8 +131,9 @@ def main(argv: list[str] | None = None) -> int:
         reference_controller = rl_controller(profile, table)
         columns = [column_of(reference_controller, name) for name in a.column]
         latency = lat.load(a.latency, rgb_resolutions(reference_controller))
-    except InputError as err:
-        print(f"pin: {err}", file=sys.stderr)
+    except (ConfigError, InputError) as err:
+        for problem in getattr(err, "problems", None) or [str(err)]:
+            print(f"pin: {problem}", file=sys.stderr)
         return 2
     evaluator = make_evaluator(load_detector(profile, random_init=a.random_detector), profile, True, a.cache_dir)
     rollout = Rollout(profile, evaluator, latency)

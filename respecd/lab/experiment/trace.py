@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import argparse
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -87,15 +87,16 @@ def state_index(controller: Any, text: str) -> int:
 def summary(updates: list[Update], state: str, factors: Sequence[str]) -> list[dict[str, Any]]:
     """Per cell, in order of first update: count, first and last update number, mean reward, mean next-state
     value, how many led into a state with another motion bin than ``state``'s, and the cell's last value."""
-    motion = list(factors).index("motion")
-    own = state.split("/")[motion]
+    motion = list(factors).index("motion") if "motion" in factors else None
+    own = None if motion is None else state.split("/")[motion]
     rows = []
     for cell in dict.fromkeys(u.cell for u in updates):
         mine = [u for u in updates if u.cell == cell]
         rows.append({"cell": cell, "updates": len(mine), "first": mine[0].number, "last": mine[-1].number,
                      "mean_reward": round(float(np.mean([u.reward for u in mine])), 4),
                      "mean_next_value": round(float(np.mean([u.next_value for u in mine])), 4),
-                     "into_other_motion": sum(u.next_state.split("/")[motion] != own for u in mine),
+                     "into_other_motion": None if motion is None else
+                     sum(u.next_state.split("/")[motion] != own for u in mine),
                      "value": round(mine[-1].value_after, 4)})
     return rows
 
@@ -124,16 +125,19 @@ def main(argv: list[str] | None = None) -> int:
         code = train_policy.main(a, on_table=watch)
     except (ConfigError, InputError) as err:
         for problem in getattr(err, "problems", None) or [str(err)]:
-            print(problem, file=sys.stderr)
+            print(problem if problem.startswith("trace: ") else f"trace: {problem}", file=sys.stderr)
         return 2
     rows = summary(tracers[0].updates, a.state, tracers[0].controller.states.factors)
+    if not rows:
+        print(f"no update was made in {a.state}")
     for row in rows:
+        moved = "" if row["into_other_motion"] is None else f", {row['into_other_motion']} into another motion bin"
         print(f"{row['cell']}: {row['updates']} updates ({row['first']}-{row['last']}), mean reward "
-              f"{row['mean_reward']:.3f}, mean next-state value {row['mean_next_value']:.3f}, "
-              f"{row['into_other_motion']} into another motion bin; value {row['value']:.3f}")
+              f"{row['mean_reward']:.3f}, mean next-state value {row['mean_next_value']:.3f}{moved}; "
+              f"value {row['value']:.3f}")
     if a.json:
         doc = {"state": a.state, "block": a.block, "summary": rows,
-               "updates": [u.__dict__ for u in tracers[0].updates]}
+               "updates": [asdict(u) for u in tracers[0].updates]}
         with open(a.json, "w", encoding="utf-8") as f:
             json.dump(doc, f, indent=1)
     return code
