@@ -7,6 +7,7 @@ records every update made in STATE: the cell each sensor's block took, that bloc
 the block in the next state, and the next state. Per cell of one block (``--block``) it prints how many updates
 the cell got and when (first and last update number of the whole training), their mean reward and next-state
 value, and how many of them led into a state with another motion bin (a still state whose people start walking).
+With ``--resume`` only this run's updates are traced (the loaded values arrive without any).
 
 usage: python -m respecd.lab.experiment.trace bright/still/dense/medium/good/high/rgb --block rgb \\
            --profile configs/sim-rover-per-sensor-slowest-44-immediate.yaml --episodes 54 --seeds 4 \\
