@@ -18,7 +18,7 @@ from typing import Any
 from respecd.control.actions import ActionSpace, Position, build_slots
 from respecd.control.bandwidth import sensing_bandwidth
 from respecd.control.baselines import heuristic_position, static_position
-from respecd.control.config import ALL_FACTORS, ControllerConfig
+from respecd.control.config import ALL_FACTORS, ControllerConfig, RewardWeights
 from respecd.control.learned import LearnedStates
 from respecd.control.qlearning import FactoredQTable, QTable
 from respecd.control.reward import (
@@ -56,6 +56,7 @@ class Controller:
         self.space = space
         # per action slot: does the detector read it (per-sensor credit and reward.unread act on this)
         self._read = [slot.modality in detector_inputs for slot in space.slots]
+        self._immediate = _immediate_blocks(config.reward, self._read)
         self.states = states
         self.powers = dict(powers or {})
         self.position: Position = position if position is not None else space.maximum()
@@ -142,7 +143,7 @@ class Controller:
             if isinstance(self.table, FactoredQTable):
                 blocks = self._block_rewards(reward, applied, obs.radar_points)
                 terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state, blocks,
-                                                      self._immediate_blocks())
+                                                      self._immediate)
             else:
                 terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state)
         action, target = self._choose(state, bins)
@@ -176,14 +177,6 @@ class Controller:
                    for slot, req in zip(self.space.slots, requested, strict=True)]
         costs = sensor_costs(self.config.reward, configs, self.powers, radar_points)
         return per_sensor_rewards(reward, costs, self._read)
-
-    def _immediate_blocks(self) -> list[bool] | None:
-        """Blocks that learn their reward alone: with per-sensor credit and ``reward.unread: immediate``,
-        those of the sensors the detector does not read; None: every block bootstraps."""
-        weights = self.config.reward
-        if weights.credit != "per-sensor" or weights.unread != "immediate":
-            return None
-        return [not read for read in self._read]
 
     def _choose(self, state: int, bins: tuple[int, ...]) -> tuple[int, Position]:
         if self.policy == "static":
@@ -240,6 +233,14 @@ class Controller:
             watts = sensor_power(zip(names, self.space.requests(self.position), strict=True), self.powers)
             self._model_cache = (self.position, watts)
         return self._model_cache[1]
+
+
+def _immediate_blocks(weights: RewardWeights, read: list[bool]) -> list[bool] | None:
+    """Blocks that learn their reward alone: with per-sensor credit and ``reward.unread: immediate``,
+    those of the sensors the detector does not read; None: every block bootstraps."""
+    if weights.credit != "per-sensor" or weights.unread != "immediate":
+        return None
+    return [not r for r in read]
 
 
 def _make_table(n_states: int, space: ActionSpace, config: ControllerConfig) -> QTable:
