@@ -49,6 +49,7 @@ def test_state_index_round_trips_every_state() -> None:
         bins = space.unindex(index)
         assert space.index(bins) == index
         assert space.from_names(space.names(bins)) == bins
+        assert space.parse(space.describe(bins)) == bins
     assert space.names(space.unindex(0))["illumination"] == "dark"
     assert space.names(space.unindex(space.size - 1)) == {
         "illumination": "bright", "motion": "fast", "radar_density": "dense", "load": "high",
@@ -58,6 +59,10 @@ def test_state_index_round_trips_every_state() -> None:
         space.unindex(space.size)
     with pytest.raises(ValueError):
         space.index((3, 0, 0, 0, 0, 0, 0))
+    with pytest.raises(ValueError, match="expected 7 values joined by '/'"):
+        space.parse("bright/still")
+    with pytest.raises(ValueError, match="a value is not a bin of its factor"):
+        space.parse("bright/still/dense/medium/good/high/sonar")
 
 
 def test_bins_from_observation_uses_profile_thresholds() -> None:

@@ -157,6 +157,19 @@ class StateSpace:
     def describe(self, bins: Sequence[int]) -> str:
         return "/".join(self.names(bins).values())
 
+    def parse(self, text: str) -> tuple[int, ...]:
+        """The bins ``describe`` wrote ('bright/still/dense/medium/good/high/rgb'); ValueError saying what a
+        state's text must hold."""
+        values = text.split("/")
+        if len(values) != len(self.factors):
+            raise ValueError(f"state {text!r}: expected {len(self.factors)} values joined by '/', "
+                             f"for {', '.join(self.factors)}")
+        try:
+            return self.from_names(dict(zip(self.factors, values, strict=True)))
+        except ValueError:
+            choices = "; ".join(f"{f}: {', '.join(b)}" for f, b in zip(self.factors, self.bin_names, strict=True))
+            raise ValueError(f"state {text!r}: a value is not a bin of its factor ({choices})") from None
+
     def fingerprint_data(self) -> dict[str, Any]:
         """The table's row layout (thresholds are not part of it: retuning keeps the table)."""
         return {"factors": list(self.factors), "bins": [list(b) for b in self.bin_names]}

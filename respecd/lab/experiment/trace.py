@@ -45,10 +45,13 @@ class Tracer:
     def __init__(self, table: FactoredQTable, controller: Any, state: str, block: str) -> None:
         self.table, self.controller = table, controller
         self.updates: list[Update] = []
-        self.state = state_index(controller, state)
+        try:
+            self.state = controller.states.index(controller.states.parse(state))
+        except ValueError as err:
+            raise InputError(str(err)) from None
         names = [slot.name for slot in controller.space.slots]
         if block not in names:
-            raise InputError(f"trace: --block {block!r}: expected one of {', '.join(names)}")
+            raise InputError(f"--block {block!r}: expected one of {', '.join(names)}")
         self.block = names.index(block)
         self.span = block_spans(table.blocks)[self.block]
         self.columns = controller.space.descriptions()
@@ -69,20 +72,6 @@ class Tracer:
                                    describe(self.controller.states.unindex(next_state)),
                                    float(self.table.q[state, column])))
         return error
-
-
-def state_index(controller: Any, text: str) -> int:
-    """'bright/still/dense/medium/good/high/rgb' (as `respecd policy show` and the pin tool print states)."""
-    states = controller.states
-    values = text.split("/")
-    if len(values) != len(states.factors):
-        raise InputError(f"trace: state {text!r}: expected {len(states.factors)} values joined by '/', "
-                         f"for {', '.join(states.factors)}")
-    try:
-        return int(states.index(states.from_names(dict(zip(states.factors, values, strict=True)))))
-    except ValueError:
-        choices = "; ".join(f"{f}: {', '.join(b)}" for f, b in zip(states.factors, states.bin_names, strict=True))
-        raise InputError(f"trace: state {text!r}: a value is not a bin of its factor ({choices})") from None
 
 
 def summary(updates: list[Update], state: str, factors: Sequence[str]) -> list[dict[str, Any]]:
@@ -119,14 +108,14 @@ def main(argv: list[str] | None = None) -> int:
 
     def watch(table: Any, controller: Any) -> None:
         if not isinstance(table, FactoredQTable):
-            raise InputError("trace: the profile's table is not factored (controller.actions.mode)")
+            raise InputError("the profile's table is not factored (controller.actions.mode)")
         tracers.append(Tracer(table, controller, a.state, a.block))
 
     try:
         code = train_policy.main(a, on_table=watch)
     except (ConfigError, InputError) as err:
         for problem in getattr(err, "problems", None) or [str(err)]:
-            print(problem if problem.startswith("trace: ") else f"trace: {problem}", file=sys.stderr)
+            print(f"trace: {problem}", file=sys.stderr)
         return 2
     rows = summary(tracers[0].updates, a.state, tracers[0].controller.states.factors)
     if not rows:
