@@ -10,7 +10,14 @@ import numpy as np
 import pytest
 import torch
 
-from respecd.perception.attribution import Attributor, SceneScores, box_channel_sums, grouped, scene_score
+from respecd.perception.attribution import (
+    Attributor,
+    SceneScores,
+    box_channel_sums,
+    candidate_windows,
+    grouped,
+    scene_score,
+)
 from respecd.perception.config import ModelSpec, PerceptionConfig
 from respecd.perception.detector import FusionDetector
 from respecd.perception.model import FusionNet
@@ -108,6 +115,57 @@ def test_ablation_drop_is_what_a_sensor_off_forward_pass_gives() -> None:
     expected = result.ranking.clamp(min=0)
     expected = torch.nan_to_num(expected / expected.sum(1, keepdim=True))
     assert torch.allclose(result.shares, expected, atol=1e-6)
+
+
+def test_every_matching_box_has_its_anchor_in_the_candidate_windows() -> None:
+    """The windows the ablation runs the head on lose nothing. A decoded box contains its anchor,
+    so every anchor inside a box that overlaps a target with IoU >= 0.5 must be a window cell:
+    checked on random targets and boxes grown from them up to the IoU limit (a target widened by
+    its own width on one side is exactly 0.5)."""
+    from respecd.perception.boxes import box_iou
+    from respecd.perception.model import STRIDES
+
+    height, width = 384, 640
+    gen = torch.Generator().manual_seed(5)
+    matching = at_the_limit = 0
+    for _ in range(60):
+        corner = torch.rand(2, generator=gen) * torch.tensor([width - 40.0, height - 40.0])
+        size = 4 + torch.rand(2, generator=gen) * torch.tensor([120.0, 200.0])
+        target = torch.cat([corner, corner + size])[None]
+        windows = candidate_windows(target, (height, width))
+        w, h = float(size[0]), float(size[1])
+        moves = torch.rand(300, 4, generator=gen) * 1.3 - 0.3  # each side out by -0.3 .. 1 of the target's size
+        boxes = target + moves * torch.tensor([-w, -h, w, h])
+        boxes = boxes[box_iou(target, boxes)[0] >= 0.5]
+        matching += len(boxes)
+        at_the_limit += int((moves.max(1).values > 0.9).sum())
+        for x1, y1, x2, y2 in boxes.tolist():
+            for s, (r0, r1, c0, c1) in zip(STRIDES, windows, strict=True):  # cells whose anchor is in the box
+                rows = range(max(0, math.ceil(y1 / s - 0.5)), min(height // s, math.floor(y2 / s - 0.5) + 1))
+                cols = range(max(0, math.ceil(x1 / s - 0.5)), min(width // s, math.floor(x2 / s - 0.5) + 1))
+                assert not rows or (r0 <= rows[0] and rows[-1] < r1)
+                assert not cols or (c0 <= cols[0] and cols[-1] < c1)
+    assert matching > 1000 and at_the_limit > 100
+
+
+def test_head_on_windows_equals_the_full_head_there() -> None:
+    model, x, presence = _random_detector_input(2)
+    hw = tuple(x.shape[2:])
+    targets = torch.tensor([[140.0, 80.0, 156.0, 100.0], [170.0, 85.0, 180.0, 105.0]])
+    windows = candidate_windows(targets, hw)
+    assert all(0 < r0 and r1 < hw[0] // s and 0 < c0 and c1 < hw[1] // s  # inside the map: the halo matters
+               for s, (r0, r1, c0, c1) in zip((8, 16, 32), windows, strict=True))
+    with torch.no_grad():
+        rgb, aux = model.encode_rgb(x[:, :3]), model.encode_aux(x[:, 3:], presence)
+        boxes, probabilities = model.decode(model.fuse(rgb, aux), hw)
+        raw, anchors = model.fuse_window(rgb, aux, windows)
+        some_boxes, some_probabilities = model.decode(raw, hw, anchors)
+    assert 0 < len(anchors) < boxes.shape[1] // 2
+    assert torch.allclose(some_boxes[0], boxes[0, anchors], atol=1e-4)
+    assert torch.allclose(some_probabilities[0], probabilities[0, anchors], atol=1e-6)
+    with torch.no_grad():  # a window with no cells at any level gives no anchors, not an error
+        raw, anchors = model.fuse_window(rgb, aux, [(0, 0, 0, 0)] * 3)
+    assert len(anchors) == 0 and raw[0].shape[1] == 0 and raw[1].shape[1] == 0
 
 
 def test_no_detection_decays_toward_uniform() -> None:

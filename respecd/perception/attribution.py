@@ -13,7 +13,9 @@ confidence-weighted mean over targets. Two methods (profile ``perception.attribu
   contributions, so the ranking is what a controller acts on: the top-ranked sensor is the
   one whose loss costs the box the most. Cost: the RGB backbone on a zero frame depends only
   on the input size (cached), the aux backbone runs once more per aux modality that is on,
-  the neck and the head once per modality (docs/PERCEPTION.md has the figures).
+  the neck once per modality, and the head once per modality on the cells near the targets
+  only (``candidate_windows``: no other anchor can hold a matching box). docs/PERCEPTION.md
+  has the figures.
 * ``gradient`` (the paper's): the pre-NMS confidences of the K anchors back-propagated to the
   input; |gradient x input| summed over each box per channel. One backward pass serves all
   K targets (the gradient of the sum of their confidences), so overlapping boxes share some
@@ -31,7 +33,7 @@ from typing import Any, Literal
 import torch
 
 from respecd.perception.boxes import box_iou, postprocess
-from respecd.perception.model import Features, FusionNet
+from respecd.perception.model import STRIDES, Features, FusionNet, Window
 
 RGB_CHANNELS = ("r", "g", "b")
 Method = Literal["ablation", "gradient"]
@@ -122,25 +124,29 @@ class Attributor:
             k = min(top_k, len(dets[1]))  # postprocess sorts by score: these are the top K
             targets, labels = dets[0][:k], dets[2][:k]
             base = dets[1][:k]
+            windows = candidate_windows(targets, hw)
             drops = torch.zeros(k, len(self.modalities))
             for m in range(len(self.modalities)):
                 on = bool(x[:, :3].any()) if m == 0 else float(presence[0, m - 1]) > 0
                 if on:  # a sensor that is already off loses nothing by being switched off
-                    drops[:, m] = base - _box_confidence(*self._detections_off(x, presence, parts, m), targets, labels)
+                    off = self._detections_off(x, presence, parts, m, windows)
+                    drops[:, m] = base - _box_confidence(*off, targets, labels)
         shares = _normalized(drops.clamp(min=0.0))
         scene = scene_score(shares, dets[1][:k])
         named = None if scene is None else dict(zip(self.modalities, scene.tolist(), strict=True))
         return Attribution(dets, self.modalities, shares, drops, named)
 
-    def _detections_off(self, x: torch.Tensor, presence: torch.Tensor, parts,
-                        m: int) -> tuple[torch.Tensor, torch.Tensor]:
-        """Boxes (N, 4) and class probabilities (N, nc) with modality ``m`` off: zero plane, presence 0."""
+    def _detections_off(self, x: torch.Tensor, presence: torch.Tensor, parts, m: int,
+                        windows: list[Window]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Boxes (N, 4) and class probabilities (N, nc) with modality ``m`` off (zero plane, presence 0):
+        of every anchor, or (FusionNet) of the anchors in ``windows``, the only ones that can match a target."""
+        hw = tuple(x.shape[2:])
         if parts is None:
             x_off, presence_off = _switched_off(x, presence, m)
-            raw = self.model(x_off, presence_off)
+            boxes, probabilities = self.model.decode(self.model(x_off, presence_off), hw)
         else:
-            raw = self.model.fuse(*self._features_off(x, presence, parts, m))
-        boxes, probabilities = self.model.decode(raw, tuple(x.shape[2:]))
+            raw, anchors = self.model.fuse_window(*self._features_off(x, presence, parts, m), windows)
+            boxes, probabilities = self.model.decode(raw, hw, anchors)
         return boxes[0], probabilities[0]
 
     def _features_off(self, x: torch.Tensor, presence: torch.Tensor, parts, m: int) -> tuple[Features, Features]:
@@ -178,10 +184,35 @@ class Attributor:
         return Attribution(dets, self.modalities, shares, shares, named)
 
 
+def candidate_windows(targets: torch.Tensor, input_hw: tuple[int, ...]) -> list[Window]:
+    """Per head level, the cells whose anchor could hold a box matching a target (IoU >= MATCH_IOU).
+
+    A decoded box contains its anchor point (its four distances are >= 0), and a box B with
+    IoU(B, T) >= t sticks out of T by at most (1/t - 1) of T's width on each side (B's width is at
+    most its overlap's width / t), likewise in height; so every matching box's anchor lies in the
+    targets widened so (plus a pixel for rounding). One rectangle per level holds all targets.
+    """
+    grow = 1.0 / MATCH_IOU - 1.0
+    widths, heights = targets[:, 2] - targets[:, 0], targets[:, 3] - targets[:, 1]
+    x0 = float((targets[:, 0] - grow * widths).min()) - 1.0
+    x1 = float((targets[:, 2] + grow * widths).max()) + 1.0
+    y0 = float((targets[:, 1] - grow * heights).min()) - 1.0
+    y1 = float((targets[:, 3] + grow * heights).max()) + 1.0
+    height, width = input_hw
+    windows = []
+    for s in STRIDES:  # cell (r, c) has its anchor at ((c + 0.5) s, (r + 0.5) s)
+        rows, cols = height // s, width // s
+        windows.append((max(0, math.ceil(y0 / s - 0.5)), min(rows, math.floor(y1 / s - 0.5) + 1),
+                        max(0, math.ceil(x0 / s - 0.5)), min(cols, math.floor(x1 / s - 0.5) + 1)))
+    return windows
+
+
 def _box_confidence(boxes: torch.Tensor, probabilities: torch.Tensor, targets: torch.Tensor,
                     labels: torch.Tensor) -> torch.Tensor:
     """Per target box, the best confidence of its class among the anchors whose box overlaps it with
     IoU >= 0.5: what is left of that detection, wherever the net now places it (0 if nothing)."""
+    if len(boxes) == 0:
+        return targets.new_zeros(len(targets))
     overlap = box_iou(targets, boxes) >= MATCH_IOU  # (K, N)
     scores = probabilities[:, labels].T  # (K, N)
     return torch.where(overlap, scores, torch.zeros_like(scores)).amax(1)

@@ -23,6 +23,8 @@ from respecd.perception.calibration import ScoreCalibration, calibrated
 from respecd.perception.config import ModelSpec
 
 STRIDES = (8, 16, 32)  # P3, P4, P5
+HEAD_HALO = 2  # cells of context a head cell needs: each branch has two 3x3 convolutions before its 1x1
+Window = tuple[int, int, int, int]  # cells of one head level: first row, end row, first column, end column
 
 
 class Conv(nn.Module):
@@ -150,9 +152,33 @@ class Head(nn.Module):
         return torch.cat(boxes, 2).transpose(1, 2), self.classify(feats)
 
     def classify(self, feats: list[torch.Tensor]) -> torch.Tensor:
-        """Class logits only (B, N, nc): what attribution needs, without the box branch's cost."""
         logits = [cls(f).flatten(2) for f, cls in zip(feats, self.cls, strict=True)]  # (B, nc, h*w)
         return torch.cat(logits, 2).transpose(1, 2)
+
+    def window(self, feats: list[torch.Tensor],
+               windows: list[Window]) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
+        """The head on each level's window only (a crop with HEAD_HALO cells of context): attribution needs
+        the anchors near its targets, and the head is a quarter of a forward pass. Returns the raw output of
+        those cells, as ``forward`` orders it, and their (n,) indices among ``forward``'s N anchors."""
+        boxes, classes, index = [], [], []
+        offset = 0
+        for f, box, cls, (r0, r1, c0, c1) in zip(feats, self.box, self.cls, windows, strict=True):
+            h, w = f.shape[2:]
+            if r1 > r0 and c1 > c0:
+                a0, b0 = max(0, r0 - HEAD_HALO), max(0, c0 - HEAD_HALO)
+                crop = f[:, :, a0 : min(h, r1 + HEAD_HALO), b0 : min(w, c1 + HEAD_HALO)]
+                inner = (..., slice(r0 - a0, r1 - a0), slice(c0 - b0, c1 - b0))
+                boxes.append(box(crop)[inner].flatten(2))
+                classes.append(cls(crop)[inner].flatten(2))
+                cells = torch.arange(r0, r1, device=f.device)[:, None] * w + torch.arange(c0, c1, device=f.device)
+                index.append(offset + cells.flatten())
+            offset += h * w
+        if not index:
+            b = feats[0].shape[0]
+            empty = feats[0].new_zeros(b, 0, 4 * self.reg_max), feats[0].new_zeros(b, 0, self.nc)
+            return empty, torch.zeros(0, dtype=torch.long, device=feats[0].device)
+        raw = torch.cat(boxes, 2).transpose(1, 2), torch.cat(classes, 2).transpose(1, 2)
+        return raw, torch.cat(index)
 
 
 Features = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # P3, P4, P5 of one backbone
@@ -204,18 +230,28 @@ class FusionNet(nn.Module):
         planes = presence.to(aux.dtype)[:, :, None, None].expand(b, a, h, w)  # (B, A, H, W)
         return self.aux(torch.cat([aux, planes], 1))  # input (B, 2A, H, W)
 
-    def fuse(self, rgb: Features, aux: Features, classes_only: bool = False):
-        """Concat per level -> neck -> head: the raw output (box logits, class logits), or class logits only."""
-        feats = self.neck(*(torch.cat([r, a], 1) for r, a in zip(rgb, aux, strict=True)))
-        return self.head.classify(feats) if classes_only else self.head(feats)
+    def fuse(self, rgb: Features, aux: Features) -> tuple[torch.Tensor, torch.Tensor]:
+        """Concat per level -> neck -> head: the raw output (box logits, class logits)."""
+        return self.head(self._neck(rgb, aux))
 
-    def decode(self, raw: tuple[torch.Tensor, torch.Tensor],
-               input_hw: tuple[int, ...]) -> tuple[torch.Tensor, torch.Tensor]:
+    def fuse_window(self, rgb: Features, aux: Features,
+                    windows: list[Window]) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
+        """``fuse`` with the head run on each level's window only (``Head.window``): raw output and anchor indices."""
+        return self.head.window(self._neck(rgb, aux), windows)
+
+    def _neck(self, rgb: Features, aux: Features) -> list[torch.Tensor]:
+        return self.neck(*(torch.cat([r, a], 1) for r, a in zip(rgb, aux, strict=True)))
+
+    def decode(self, raw: tuple[torch.Tensor, torch.Tensor], input_hw: tuple[int, ...],
+               anchors: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """Raw head output -> boxes (B, N, 4) x1y1x2y2 in input pixels and class probabilities (B, N, nc),
-        calibrated for the input size when the checkpoint carries a calibration."""
+        calibrated for the input size when the checkpoint carries a calibration. ``anchors``: the raw output
+        holds only these anchors (``fuse_window``'s indices)."""
         box_logits, cls_logits = raw
         height, width = input_hw
         points, strides = anchor_grid(height, width, device=box_logits.device)
+        if anchors is not None:
+            points, strides = points[anchors], strides[anchors]
         boxes = decode_boxes(box_logits, points, strides, self.spec.reg_max)
         return boxes, calibrated(self.score_calibration, cls_logits.sigmoid(), input_hw)
 
