@@ -33,7 +33,7 @@ from typing import Any, Literal
 import torch
 
 from respecd.perception.boxes import box_iou, postprocess
-from respecd.perception.model import STRIDES, Features, FusionNet, Window
+from respecd.perception.model import STRIDES, Features, FusionNet, Window, anchor_cells
 
 RGB_CHANNELS = ("r", "g", "b")
 Method = Literal["ablation", "gradient"]
@@ -199,12 +199,7 @@ def candidate_windows(targets: torch.Tensor, input_hw: tuple[int, ...]) -> list[
     y0 = float((targets[:, 1] - grow * heights).min()) - 1.0
     y1 = float((targets[:, 3] + grow * heights).max()) + 1.0
     height, width = input_hw
-    windows = []
-    for s in STRIDES:  # cell (r, c) has its anchor at ((c + 0.5) s, (r + 0.5) s)
-        rows, cols = height // s, width // s
-        windows.append((max(0, math.ceil(y0 / s - 0.5)), min(rows, math.floor(y1 / s - 0.5) + 1),
-                        max(0, math.ceil(x0 / s - 0.5)), min(cols, math.floor(x1 / s - 0.5) + 1)))
-    return windows
+    return [(*anchor_cells(y0, y1, s, height // s), *anchor_cells(x0, x1, s, width // s)) for s in STRIDES]
 
 
 def _box_confidence(boxes: torch.Tensor, probabilities: torch.Tensor, targets: torch.Tensor,

@@ -270,6 +270,12 @@ def anchor_grid(height: int, width: int, device: torch.device | None = None) -> 
     return torch.cat(points), torch.cat(strides)
 
 
+def anchor_cells(lo: float, hi: float, stride: int, count: int) -> tuple[int, int]:
+    """Along one axis of a level with ``count`` cells: the cells (first, end) whose anchor centre, (i + 0.5) x
+    ``stride`` as ``anchor_grid`` places it, lies in [lo, hi]."""
+    return max(0, math.ceil(lo / stride - 0.5)), min(count, math.floor(hi / stride - 0.5) + 1)
+
+
 def dfl_expectation(box_logits: torch.Tensor, reg_max: int) -> torch.Tensor:
     """(B, N, 4*reg_max) logits -> (B, N, 4) expected distances left, top, right, bottom in stride units."""
     b, n, _ = box_logits.shape
