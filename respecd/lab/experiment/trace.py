@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from respecd.control.qlearning import FactoredQTable, block_spans
+from respecd.control.state import StateSpace
 from respecd.errors import ConfigError, InputError
 
 
@@ -74,11 +75,11 @@ class Tracer:
         return error
 
 
-def summary(updates: list[Update], state: str, factors: Sequence[str]) -> list[dict[str, Any]]:
+def summary(updates: list[Update], state: str, states: StateSpace) -> list[dict[str, Any]]:
     """Per cell, in order of first update: count, first and last update number, mean reward, mean next-state
     value, how many led into a state with another motion bin than ``state``'s, and the cell's last value."""
-    motion = list(factors).index("motion") if "motion" in factors else None
-    own = None if motion is None else state.split("/")[motion]
+    motion = states.factors.index("motion") if "motion" in states.factors else None
+    own = None if motion is None else states.parse(state)[motion]
     rows = []
     for cell in dict.fromkeys(u.cell for u in updates):
         mine = [u for u in updates if u.cell == cell]
@@ -86,7 +87,7 @@ def summary(updates: list[Update], state: str, factors: Sequence[str]) -> list[d
                      "mean_reward": round(float(np.mean([u.reward for u in mine])), 4),
                      "mean_next_value": round(float(np.mean([u.next_value for u in mine])), 4),
                      "into_other_motion": None if motion is None else
-                     sum(u.next_state.split("/")[motion] != own for u in mine),
+                     sum(states.parse(u.next_state)[motion] != own for u in mine),
                      "value": round(mine[-1].value_after, 4)})
     return rows
 
@@ -117,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         for problem in getattr(err, "problems", None) or [str(err)]:
             print(f"trace: {problem}", file=sys.stderr)
         return 2
-    rows = summary(tracers[0].updates, a.state, tracers[0].controller.states.factors)
+    rows = summary(tracers[0].updates, a.state, tracers[0].controller.states)
     if not rows:
         print(f"no update was made in {a.state}")
     for row in rows:
