@@ -37,3 +37,13 @@ class DriverIOError(DriverError):
 
 class DriverTimeoutError(DriverError):
     """The device did not answer in time."""
+
+
+def report(err: RespecdError, prog: str) -> int:
+    """Print each of ``err``'s problems as ``prog: problem`` on stderr (a ConfigError may hold several);
+    returns 2, the exit status of bad input."""
+    import sys
+
+    for problem in getattr(err, "problems", None) or [str(err)]:
+        print(f"{prog}: {problem}", file=sys.stderr)
+    return 2

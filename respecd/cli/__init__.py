@@ -13,7 +13,7 @@ import os
 import sys
 
 from respecd import __version__
-from respecd.errors import ConfigError, InputError
+from respecd.errors import ConfigError, InputError, report
 
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -66,10 +66,7 @@ def _run(args: argparse.Namespace) -> int:
     try:
         return int(importlib.import_module(module_name).main(args) or 0)
     except (ConfigError, InputError) as err:
-        problems = getattr(err, "problems", None) or [str(err)]
-        for line in problems:
-            print(f"respecd: {line}", file=sys.stderr)
-        return 2
+        return report(err, "respecd")
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:  # `respecd policy show q.npz | head`: the reader left, nothing is wrong

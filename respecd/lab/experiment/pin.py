@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from respecd.control.qlearning import FactoredQTable, block_spans
-from respecd.errors import ConfigError, InputError
+from respecd.errors import ConfigError, InputError, report
 from respecd.lab.detector.metrics import average_precision
 from respecd.lab.experiment.fixed import seed_list
 
@@ -105,7 +105,6 @@ def line(label: str, result: PinnedRun, reference: PinnedRun) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     import json
-    import sys
 
     from respecd.config import load_profile
     from respecd.control.shipped import shipped_table_path
@@ -136,9 +135,7 @@ def main(argv: list[str] | None = None) -> int:
         columns = [column_of(reference_controller, name) for name in a.column]
         latency = lat.load(a.latency, rgb_resolutions(reference_controller))
     except (ConfigError, InputError) as err:
-        for problem in getattr(err, "problems", None) or [str(err)]:
-            print(f"pin: {problem}", file=sys.stderr)
-        return 2
+        return report(err, "pin")
     evaluator = make_evaluator(load_detector(profile, random_init=a.random_detector), profile, True, a.cache_dir)
     rollout = Rollout(profile, evaluator, latency)
     pieces = [Piece(a.scenario, seed, a.duration) for seed in a.seeds]

@@ -25,7 +25,7 @@ import numpy as np
 
 from respecd.control.qlearning import FactoredQTable, block_spans
 from respecd.control.state import StateSpace
-from respecd.errors import ConfigError, InputError
+from respecd.errors import ConfigError, InputError, report
 
 
 @dataclass(frozen=True)
@@ -94,7 +94,6 @@ def summary(updates: list[Update], state: str, states: StateSpace) -> list[dict[
 
 def main(argv: list[str] | None = None) -> int:
     import json
-    import sys
 
     from respecd.cli import train_policy
 
@@ -115,9 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         code = train_policy.main(a, on_table=watch)
     except (ConfigError, InputError) as err:
-        for problem in getattr(err, "problems", None) or [str(err)]:
-            print(f"trace: {problem}", file=sys.stderr)
-        return 2
+        return report(err, "trace")
     rows = summary(tracers[0].updates, a.state, tracers[0].controller.states)
     if not rows:
         print(f"no update was made in {a.state}")
