@@ -106,6 +106,30 @@ def test_batches_of_an_epoch_do_not_depend_on_the_epochs_before_it() -> None:
     assert list(draw_batches(Draws(), 7, 1, 2, 3)) == both[3:] and both[:3] != both[3:]
 
 
+def test_ema_steps_toward_the_net_it_was_made_from_and_copies_its_counters() -> None:
+    """The average keeps following the training net after its state is loaded in place (--resume)."""
+    import math
+
+    from respecd.lab.detector.train import EMA
+    from respecd.perception.model import FusionNet
+
+    torch.manual_seed(0)
+    net = FusionNet(TINY)
+    ema = EMA(net, decay=0.9, tau=1.0)
+    before = {k: v.clone() for k, v in ema.model.state_dict().items()}
+    with torch.no_grad():
+        net.load_state_dict({k: v + 1 if v.dtype.is_floating_point else v + 5 for k, v in net.state_dict().items()})
+    ema.update()
+    d = 0.9 * (1 - math.exp(-1.0))
+    after, source = ema.model.state_dict(), net.state_dict()
+    for name, old in before.items():
+        if old.dtype.is_floating_point:
+            torch.testing.assert_close(after[name], d * old + (1 - d) * source[name])
+        else:
+            assert torch.equal(after[name], source[name])  # batch-norm step counters are copied, not averaged
+    assert ema.updates == 1
+
+
 def test_train_command_on_the_simulator(tmp_path: Path, capsys) -> None:
     out = tmp_path / "sim.pt"
     code = cli_main(["train", "--data", "sim", "--out", str(out), "--epochs", "1", "--steps", "1", "--batch", "2",

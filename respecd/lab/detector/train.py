@@ -89,16 +89,22 @@ class EMA:
         for p in self.model.parameters():
             p.requires_grad_(False)
         self.decay, self.tau, self.updates = decay, tau, 0
+        # the (average, source) tensor pairs, found once: the state dicts share the modules' storage, and
+        # building both every step cost a third of the update (loading a state dict copies into them)
+        pairs = list(zip(self.model.state_dict().values(), model.state_dict().values(), strict=True))
+        self._averaged = [pair for pair in pairs if pair[0].dtype.is_floating_point]
+        self._copied = [pair for pair in pairs if not pair[0].dtype.is_floating_point]
 
     @torch.no_grad()
-    def update(self, model: nn.Module) -> None:
+    def update(self) -> None:
+        """One step of the average toward the net it was made from."""
         self.updates += 1
         d = self.decay * (1 - math.exp(-self.updates / self.tau))
-        for ema_v, v in zip(self.model.state_dict().values(), model.state_dict().values(), strict=True):
-            if ema_v.dtype.is_floating_point:
-                ema_v.mul_(d).add_(v.detach(), alpha=1 - d)
-            else:
-                ema_v.copy_(v)
+        if self._averaged:
+            averages, sources = zip(*self._averaged, strict=True)
+            torch._foreach_lerp_(list(averages), list(sources), 1 - d)  # average + (1 - d)(source - average)
+        for average, source in self._copied:
+            average.copy_(source)
 
 
 class CropSource:
@@ -167,7 +173,7 @@ def _optimizer(model: nn.Module, cfg: TrainConfig) -> torch.optim.Optimizer:
             continue  # frozen (--freeze)
         (decay if p.ndim == 4 and name.endswith("weight") else no_decay).append(p)  # conv kernels only
     groups = [{"params": decay, "weight_decay": cfg.weight_decay}, {"params": no_decay, "weight_decay": 0.0}]
-    return torch.optim.AdamW(groups, lr=cfg.lr, betas=(0.9, 0.999))
+    return torch.optim.AdamW(groups, lr=cfg.lr, betas=(0.9, 0.999), foreach=True)  # one op per step, not per tensor
 
 
 def lr_at(step: int, total: int, base: float) -> float:
@@ -320,7 +326,7 @@ def train_step(model: checkpoint.Net, opt: torch.optim.Optimizer, ema: EMA, batc
     loss.backward()
     nn.utils.clip_grad_norm_(model.parameters(), 10.0)
     opt.step()
-    ema.update(model)
+    ema.update()
     return loss, parts
 
 
