@@ -85,23 +85,6 @@ def test_mismatched_spec_names_the_field(tmp_path: Path) -> None:
     assert "(32, 32, 32)" in str(info.value) and "(16, 16, 16)" in str(info.value)
 
 
-def test_a_checkpoint_from_before_the_stem_options_loads_with_yolov8_stems(tmp_path: Path) -> None:
-    """Files written before rgb_stem, aux_stem and head_widths existed lack them: they were conv-stem nets."""
-    torch.manual_seed(0)
-    model = FusionNet(TINY.model_copy(update={"rgb_stem": "conv", "aux_stem": "conv", "head_widths": None})).eval()
-    spec = model.spec.model_dump(mode="json")
-    for name in checkpoint.LEGACY_SPEC:
-        del spec[name]
-    path = tmp_path / "old.pt"
-    torch.save({"format": checkpoint.FORMAT, "spec": spec, "state_dict": model.state_dict()}, path)
-    loaded, _ = checkpoint.load(str(path))
-    assert (loaded.spec.rgb_stem, loaded.spec.aux_stem, loaded.spec.head_widths) == ("conv", "conv", None)
-    assert checkpoint.spec_of(str(path)) == loaded.spec
-    x = torch.rand(1, 5, 64, 96)
-    with torch.inference_mode():
-        assert torch.equal(model(x)[1], loaded(x)[1])
-
-
 def test_weights_that_do_not_fit_their_spec(tmp_path: Path) -> None:
     path = tmp_path / "tampered.pt"
     payload = {"format": checkpoint.FORMAT, "spec": TINY.model_dump(mode="json"),

@@ -39,25 +39,6 @@ def test_output_shapes_follow_rgb_resolution(net: FusionNet, w: int, h: int) -> 
     assert points.shape == (n, 2) and strides.shape == (n, 1)
 
 
-@pytest.mark.parametrize("rgb_stem,aux_stem", [("patch4", "patch8"), ("patch4", "patch4"), ("conv", "patch8")])
-def test_patch_stems_give_the_same_levels_without_the_stride_2_maps(rgb_stem: str, aux_stem: str) -> None:
-    """A patch stem rearranges 4x4 (8x8) pixels into channels: the backbone still ends at strides 8, 16, 32 and
-    the head sees the same anchors; no feature map at stride 2 (or 4) is ever made."""
-    spec = TINY.model_copy(update={"rgb_stem": rgb_stem, "aux_stem": aux_stem, "head_widths": (8, 4)})
-    net = FusionNet(spec).eval()
-    x = torch.rand(2, 5, 96, 128)
-    with torch.inference_mode():
-        box, cls = net(x, torch.ones(2, 2))
-        stem = net.aux.stem(torch.rand(2, 4, 96, 128))
-        levels = net.encode_aux(x[:, 3:])
-    assert box.shape == (2, sum((96 // s) * (128 // s) for s in (8, 16, 32)), 4 * spec.reg_max)
-    assert cls.shape == (2, box.shape[1], 1)
-    stride = int(aux_stem[-1])
-    assert stem.shape == (2, spec.aux_widths[1 if stride == 4 else 2], 96 // stride, 128 // stride)
-    assert [f.shape[2:] for f in levels] == [(12, 16), (6, 8), (3, 4)]
-    assert net.head.box[0][0].conv.out_channels == 8 and net.head.cls[0][0].conv.out_channels == 4
-
-
 def test_cost_scales_with_pixels() -> None:
     """Fully convolutional: 640x360 has about a third of the anchors of 1280x720 (not a resize)."""
     small = sum((384 // s) * (640 // s) for s in (8, 16, 32))

@@ -156,7 +156,7 @@ def test_train_recipe_flags_reach_the_training_config(tmp_path: Path, capsys) ->
                      "--eval-frames", "0", "--quiet", "--strip-zoom", "0.7,1.8", "--strip-zoom", "640x360=0.9,1.1",
                      "--keep-cut", "0.4",
                      "--radar-alone", "0.2", "--scenario-weight", "behind-curtain=3",
-                     "--resolution-weight", "640x360=3", "--strips-per-frame", "2"])
+                     "--resolution-weight", "640x360=3"])
     assert code == 0
     train = json.loads(out.with_suffix(".json").read_text())["train"]
     assert train["augment"]["zoom"] == [0.7, 1.8] and train["augment"]["keep_cut"] == 0.4
@@ -166,7 +166,6 @@ def test_train_recipe_flags_reach_the_training_config(tmp_path: Path, capsys) ->
     weights = train["scenario_weights"]
     assert weights["behind-curtain"] == 3.0 and weights["occlusion-partial"] == 2.0  # the others keep theirs
     assert train["resolution_weights"] == {"640x360": 3.0, "960x540": 1.0, "1280x720": 1.0}
-    assert train["strips_per_frame"] == 2
     capsys.readouterr()
     assert cli_main(["train", "--data", "sim", "--out", str(out), "--resolution-weight", "800x600=2"]) == 2
     assert "expected WxH=W with WxH one of 640x360" in capsys.readouterr().err
@@ -181,24 +180,6 @@ def test_train_recipe_flags_reach_the_training_config(tmp_path: Path, capsys) ->
     assert "expected LO,HI or WxH=LO,HI with WxH one of 640x360" in capsys.readouterr().err
     assert cli_main(["train", "--data", "sim", "--out", str(out), "--strip-zoom", "640x360=1.4,0.7"]) == 2
     assert "with LO <= HI" in capsys.readouterr().err
-    assert cli_main(["train", "--data", "sim", "--out", str(out), "--strips-per-frame", "0"]) == 2
-    assert "--strips-per-frame 0: expected at least 1" in capsys.readouterr().err
-
-
-def test_strips_per_frame_cuts_several_strips_from_each_rendered_instant() -> None:
-    """--strips-per-frame 2: a step's strips come in pairs from one world instant (half the rendering)."""
-    from respecd.lab.detector.simdata import SimFrames, SimStream
-
-    pcfg = PerceptionConfig()
-    frames = SimFrames(pcfg, seed=5)
-    for per_frame, instants in ((1, 6), (2, 3), (4, 2)):
-        stream = SimStream(frames, AugmentConfig(), 6, pcfg.model.aux_modalities, strips_per_frame=per_frame,
-                           resolution_weights={(960, 540): 0.0, (1280, 720): 0.0})  # 640x360: 6 strips a step
-        samples, size = stream.draw(np.random.default_rng(1))
-        times = [s.meta["t"] for s in samples]
-        assert len(samples) == 6 and size == (320, 384)
-        assert len(set(times)) == instants
-        assert all(times.count(t) <= per_frame for t in times)
 
 
 def test_a_strip_zooms_by_the_range_of_its_rgb_size() -> None:

@@ -28,9 +28,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--batch", type=int, default=None,
                         help="sim: strips per step at 640x360, fewer at larger sizes (default 10); "
                              "folder data: crops per step (default 16)")
-    parser.add_argument("--strips-per-frame", type=int, default=1, metavar="N",
-                        help="sim: training strips cut from each rendered frame (default 1; 2 halves the rendering "
-                             "a step costs, with strips from fewer instants)")
     parser.add_argument("--lr", type=float, default=2e-3, help="AdamW peak learning rate (default 0.002)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the simulated world and the augmentation")
     parser.add_argument("--steps", type=int, default=100,
@@ -106,7 +103,7 @@ def main(args: argparse.Namespace) -> int:
         data_scale=args.scale, val_scale=args.val_scale, val_limit=args.val_limit,
         scenario_weights=_scenario_weights(args.scenario_weight),
         resolution_weights=_resolution_weights(args.resolution_weight), sim_mix=args.sim_mix,
-        precision=args.precision, strips_per_frame=args.strips_per_frame,
+        precision=args.precision,
     )
     aux = tuple(m for m in args.aux.split(",") if m)
     try:
@@ -181,8 +178,6 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError(f"--data {args.data}: expected 'sim' or a dataset folder (LLVIP/VOC, COCO json, YOLO txt)")
     if not 0.0 <= args.sim_mix < 1.0 or (args.sim_mix and args.data == "sim"):
         raise InputError(f"--sim-mix {args.sim_mix}: expected a share 0 <= P < 1 of steps, with --data a folder")
-    if args.strips_per_frame < 1:
-        raise InputError(f"--strips-per-frame {args.strips_per_frame}: expected at least 1")
     if args.out.suffix != ".pt":
         raise InputError(f"--out {args.out}: expected a .pt file name")
 

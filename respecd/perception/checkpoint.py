@@ -100,21 +100,12 @@ def load_problem(err: BaseException) -> str:
     return type(err).__name__ if "weights_only" in first or "safe_globals" in first else first
 
 
-# Spec fields added after checkpoints were shipped, with the value every earlier checkpoint was built with
-# (the default may differ: it follows builtin:sim-rover).
-LEGACY_SPEC: dict[str, Any] = {"rgb_stem": "conv", "aux_stem": "conv", "head_widths": None}
-
-
 def spec_of(source: str) -> ModelSpec:
     """The model spec a checkpoint holds (tools take whatever net the file has)."""
     path = resolve(source)
-    return _spec(path, read(path))
-
-
-def _spec(path: Path, payload: dict[str, Any]) -> ModelSpec:
     try:
-        return ModelSpec.model_validate({**LEGACY_SPEC, **payload["spec"]})
-    except (KeyError, TypeError, ValidationError) as err:
+        return ModelSpec.model_validate(read(path)["spec"])
+    except (KeyError, ValidationError) as err:
         raise ConfigError(f"{path}: checkpoint has no valid model spec ({err.__class__.__name__})") from err
 
 
@@ -122,7 +113,10 @@ def load(source: str, expected: ModelSpec | None = None, map_location: str = "cp
     """Model (eval mode) and the raw payload. ``expected``: the profile's spec, must match."""
     path = resolve(source)
     payload = read(path)
-    spec = _spec(path, payload)
+    try:
+        spec = ModelSpec.model_validate(payload["spec"])
+    except (KeyError, ValidationError) as err:
+        raise ConfigError(f"{path}: checkpoint has no valid model spec ({err.__class__.__name__})") from err
     if expected is not None:
         _check_match(path, spec, expected)
     model = build(spec)

@@ -81,19 +81,6 @@ class ModelSpec(StrictModel):
     depths: tuple[int, int, int, int] = Field(
         (1, 1, 1, 1), description="C2f bottleneck repeats at strides 4, 8, 16, 32 (YOLOv8n: 1, 2, 2, 1)."
     )
-    rgb_stem: Literal["conv", "patch4"] = Field(
-        "conv",
-        description="Backbone 1's way to stride 4: 'conv' (YOLOv8: two stride-2 3x3 convolutions and a C2f) or "
-        "'patch4' (4x4 patches, one 3x3 convolution; cheaper to train on a CPU).",
-    )
-    aux_stem: Literal["conv", "patch4", "patch8"] = Field(
-        "conv",
-        description="Backbone 2's stem: as rgb_stem, or 'patch8' (8x8 patches straight to stride 8 with a 1x1 "
-        "convolution: the aux planes are upsampled into the RGB view and hold no finer detail).",
-    )
-    head_widths: tuple[int, int] | None = Field(
-        None, description="Widths of the head's box and class branches (None: YOLOv8's rule, 64 and 48 here)."
-    )
     reg_max: int = Field(16, ge=1, le=32, description="DFL bins per box side (YOLOv8: 16).")
     classes: tuple[str, ...] = Field(("person",), min_length=1, description="Class names, index order.")
 

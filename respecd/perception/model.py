@@ -93,27 +93,12 @@ class SPPF(nn.Module):
 
 
 class Backbone(nn.Module):
-    """CSPDarknet as in YOLOv8: returns features at strides 8, 16, 32.
+    """CSPDarknet as in YOLOv8: returns features at strides 8, 16, 32."""
 
-    ``stem`` "conv" is YOLOv8's (two stride-2 3x3 convolutions and a C2f at stride 4). "patch4" cuts the
-    input into 4x4 patches (a lossless rearrangement, as ConvNeXt's stem) followed by one 3x3 convolution
-    to ``w[1]``; "patch8" goes to stride 8 at once with a 1x1 convolution to ``w[2]``, for planes upsampled
-    into the RGB view that hold no finer detail (a 160x120 thermal camera, radar discs). Both skip the
-    full-resolution feature maps that cost a training step the most on a CPU (docs/PERCEPTION.md).
-    """
-
-    def __init__(self, c_in: int, w: tuple[int, ...], d: tuple[int, ...], stem: str = "conv") -> None:
+    def __init__(self, c_in: int, w: tuple[int, ...], d: tuple[int, ...]) -> None:
         super().__init__()
-        if stem == "conv":
-            self.stem = nn.Sequential(Conv(c_in, w[0], 3, 2), Conv(w[0], w[1], 3, 2), C2f(w[1], w[1], d[0], True))
-        elif stem == "patch4":
-            self.stem = nn.Sequential(nn.PixelUnshuffle(4), Conv(16 * c_in, w[1], 3))
-        elif stem == "patch8":
-            self.stem = nn.Sequential(nn.PixelUnshuffle(8), Conv(64 * c_in, w[2], 1))
-        else:
-            raise ValueError(f"unknown backbone stem {stem!r}")
-        down = [] if stem == "patch8" else [Conv(w[1], w[2], 3, 2)]  # built after the stem: same init order as before
-        self.p3 = nn.Sequential(*down, C2f(w[2], w[2], d[1], True))
+        self.stem = nn.Sequential(Conv(c_in, w[0], 3, 2), Conv(w[0], w[1], 3, 2), C2f(w[1], w[1], d[0], True))
+        self.p3 = nn.Sequential(Conv(w[1], w[2], 3, 2), C2f(w[2], w[2], d[1], True))
         self.p4 = nn.Sequential(Conv(w[2], w[3], 3, 2), C2f(w[3], w[3], d[2], True))
         self.p5 = nn.Sequential(Conv(w[3], w[4], 3, 2), C2f(w[4], w[4], d[3], True), SPPF(w[4], w[4]))
 
@@ -147,12 +132,11 @@ class Neck(nn.Module):
 class Head(nn.Module):
     """Anchor-free decoupled head: a box branch (4 x reg_max DFL logits) and a class branch."""
 
-    def __init__(self, c: tuple[int, int, int], nc: int, reg_max: int, widths: tuple[int, int] | None = None) -> None:
-        """``widths``: the box and class branches' widths; None: YOLOv8's (for this net's P3 width of 48, 64
-        and 48 channels, wider than the box branch's input)."""
+    def __init__(self, c: tuple[int, int, int], nc: int, reg_max: int) -> None:
         super().__init__()
         self.nc, self.reg_max = nc, reg_max
-        cb, cc = widths or (max(16, c[0] // 4, reg_max * 4), max(c[0], min(nc, 100)))
+        cb = max(16, c[0] // 4, reg_max * 4)
+        cc = max(c[0], min(nc, 100))
         self.box = nn.ModuleList(
             nn.Sequential(Conv(ci, cb, 3), Conv(cb, cb, 3), nn.Conv2d(cb, 4 * reg_max, 1)) for ci in c
         )
@@ -214,11 +198,11 @@ class FusionNet(nn.Module):
         self.spec = spec
         self.score_calibration: ScoreCalibration | None = None  # set by FusionDetector.load, never trained
         n_aux = len(spec.aux_modalities)
-        self.rgb = Backbone(3, spec.rgb_widths, spec.depths, spec.rgb_stem)
-        self.aux = Backbone(2 * n_aux, spec.aux_widths, spec.depths, spec.aux_stem)  # data planes + presence planes
+        self.rgb = Backbone(3, spec.rgb_widths, spec.depths)
+        self.aux = Backbone(2 * n_aux, spec.aux_widths, spec.depths)  # data planes + presence planes
         fused = tuple(a + b for a, b in zip(spec.rgb_widths[2:], spec.aux_widths[2:], strict=True))
         self.neck = Neck(fused, spec.neck_widths, spec.depths[0])  # type: ignore[arg-type]
-        self.head = Head(spec.neck_widths, len(spec.classes), spec.reg_max, spec.head_widths)
+        self.head = Head(spec.neck_widths, len(spec.classes), spec.reg_max)
 
     def forward(self, x: torch.Tensor, presence: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """``x``: (B, 3 + A, H, W) in 0..1, H and W multiples of 32; ``presence``: (B, A) 0/1.

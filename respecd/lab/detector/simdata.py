@@ -147,9 +147,9 @@ class SimStream:
 
     def __init__(self, frames: SimFrames, augment: AugmentConfig, batch: int, aux: tuple[str, ...],
                  strip_width: int = 320, per_segment: int = 2, weights: dict[str, float] | None = None,
-                 resolution_weights: dict[tuple[int, int], float] | None = None, strips_per_frame: int = 1) -> None:
+                 resolution_weights: dict[tuple[int, int], float] | None = None) -> None:
         self.frames, self.augment, self.batch, self.aux = frames, augment, batch, aux
-        self.strip_width, self.per_segment, self.strips_per_frame = strip_width, per_segment, strips_per_frame
+        self.strip_width, self.per_segment = strip_width, per_segment
         table = SCENARIO_WEIGHTS if weights is None else weights
         self.weights = {name: table.get(name, 1.0) for name in frames.sim.scenarios}
         drawn = np.array(list(self.weights.values()))
@@ -173,9 +173,8 @@ class SimStream:
         out: list[Sample] = []
         while len(out) < n:
             segment = self._segment(rng)
-            for _ in range(min(self.per_segment, math.ceil((n - len(out)) / self.strips_per_frame))):
+            for _ in range(min(self.per_segment, n - len(out))):
                 s = self.frames.sample(self.frames.time_in(segment, rng.uniform(0.02, 0.98)), size, rng, True)
-                for _ in range(min(self.strips_per_frame, n - len(out))):
-                    cut = strip(s, self.strip_width, height, rng, self.augment, self.augment.zoom_for(size))
-                    out.append(photometric(cut, rng, self.augment, self.aux))
+                s = strip(s, self.strip_width, height, rng, self.augment, self.augment.zoom_for(size))
+                out.append(photometric(s, rng, self.augment, self.aux))
         return out, (self.strip_width, height)

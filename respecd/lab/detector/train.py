@@ -51,7 +51,6 @@ class TrainConfig:
     weight_decay: float = 5e-4
     seed: int = 0
     sim_batch: int = 10  # strips per step at 640x360, fewer at larger sizes (simdata.SimStream)
-    strips_per_frame: int = 1  # sim: strips cut from each rendered frame (2 halves the rendering per step)
     steps_per_epoch: int = 100  # folder data: 0 = one pass over the pool in batches
     threads: int = 1
     resume: bool = False
@@ -139,8 +138,7 @@ def _sim_stream(cfg: TrainConfig, pcfg: PerceptionConfig) -> SimStream:
     from respecd.lab.detector.simdata import SimFrames, SimStream
 
     return SimStream(SimFrames(pcfg, cfg.seed), cfg.augment, cfg.sim_batch, pcfg.model.aux_modalities,
-                     weights=cfg.scenario_weights, resolution_weights=cfg.resolution_weights,
-                     strips_per_frame=cfg.strips_per_frame)
+                     weights=cfg.scenario_weights, resolution_weights=cfg.resolution_weights)
 
 
 def build_pool(cfg: TrainConfig, pcfg: PerceptionConfig):
@@ -211,7 +209,6 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
         "epochs": cfg.epochs,
         "steps": total,
         "batch": cfg.sim_batch if cfg.data == "sim" else cfg.batch,
-        "strips_per_frame": cfg.strips_per_frame if cfg.data == "sim" else None,
         "lr": cfg.lr,  # the peak; with init and seed, what a later stage needs to be reproduced
         "pool": None if cfg.data == "sim" else len(pool),
         "train_size": "strips 320 wide, full frame height" if cfg.data == "sim" else list(cfg.augment.size),
