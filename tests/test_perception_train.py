@@ -106,8 +106,9 @@ def test_batches_of_an_epoch_do_not_depend_on_the_epochs_before_it() -> None:
     assert list(draw_batches(Draws(), 7, 1, 2, 3)) == both[3:] and both[:3] != both[3:]
 
 
-def test_ema_steps_toward_the_net_it_was_made_from_and_copies_its_counters() -> None:
-    """The average keeps following the training net after its state is loaded in place (--resume)."""
+def test_ema_steps_toward_the_net_and_copies_its_counters() -> None:
+    """The average follows the training net, also after the net was moved to another memory layout (new storage)
+    and its state loaded in place (--resume)."""
     import math
 
     from respecd.lab.detector.train import EMA
@@ -117,9 +118,10 @@ def test_ema_steps_toward_the_net_it_was_made_from_and_copies_its_counters() -> 
     net = FusionNet(TINY)
     ema = EMA(net, decay=0.9, tau=1.0)
     before = {k: v.clone() for k, v in ema.model.state_dict().items()}
+    net = net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # torch's stub lacks it
     with torch.no_grad():
         net.load_state_dict({k: v + 1 if v.dtype.is_floating_point else v + 5 for k, v in net.state_dict().items()})
-    ema.update()
+    ema.update(net)
     d = 0.9 * (1 - math.exp(-1.0))
     after, source = ema.model.state_dict(), net.state_dict()
     for name, old in before.items():
