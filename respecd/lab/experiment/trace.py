@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -101,7 +102,7 @@ def main(argv: list[str] | None = None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("state", help="the traced state, e.g. bright/still/dense/medium/good/high/rgb")
     parser.add_argument("--block", default="rgb", help="the sensor whose cells are summarized (default rgb)")
-    parser.add_argument("--json", help="write every traced update and the summary here")
+    parser.add_argument("--json", type=Path, help="write every traced update and the summary here")
     train_policy.add_arguments(parser)
     a = parser.parse_args(argv)
     tracers: list[Tracer] = []
@@ -126,8 +127,8 @@ def main(argv: list[str] | None = None) -> int:
     if a.json:
         doc = {"state": a.state, "block": a.block, "summary": rows,
                "updates": [asdict(u) for u in tracers[0].updates]}
-        with open(a.json, "w", encoding="utf-8") as f:
-            json.dump(doc, f, indent=1)
+        a.json.parent.mkdir(parents=True, exist_ok=True)  # as `respecd bench --json`: a training's trace is not lost
+        a.json.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
     return code
 
 
