@@ -24,27 +24,48 @@ from respecd.errors import ConfigError
 from respecd.perception.config import resolve_weights
 
 
-def check_profile(loaded: LoadedProfile, state_dir: Path | None = None, policy: str | None = None) -> list[str]:
-    """Every problem that would stop this profile from running on this machine."""
+def check_profile(loaded: LoadedProfile, state_dir: Path | None = None, policy: str | None = None,
+                  create_state_dir: bool = False) -> list[str]:
+    """Every problem that would stop this profile from running on this machine. The daemon
+    creates a missing state directory (``create_state_dir``); check-config only asks whether
+    it could."""
     problems = [*_weights(loaded), *_sensor_files(loaded), *_qtable(loaded, state_dir, policy)]
     profile = loaded.model
     if profile.perception.enabled:
         reason = device_problem(profile.perception.device)
         if reason:
             problems.append(_at(loaded, ("perception", "device"), reason))
-    return problems
+    return problems + _learning_state_dir(loaded, state_dir, policy, create_state_dir)
 
 
-def check_state_dir(path: Path) -> str | None:
-    """Why ``path`` cannot hold the Q-table (created if missing), or None. A real write is
-    tried: permissions alone do not show a read-only mount or a full disk."""
+def check_state_dir(path: Path, create: bool = True) -> str | None:
+    """Why ``path`` cannot hold the Q-table, or None. A real write is tried: permissions alone do
+    not show a read-only mount or a full disk. Without ``create`` (check-config) the folders made
+    for the try are removed again, so asking leaves nothing behind."""
+    made = [p for p in (path, *path.parents) if not os.path.exists(p)]  # deepest first
     try:
         path.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=path, prefix=".respecd-write-check-"):
             pass
     except OSError as err:
         return f"{path}: state directory is not writable ({err.strerror or err}); the Q-table could not be saved"
+    finally:
+        for folder in made if not create else ():
+            try:
+                folder.rmdir()
+            except OSError:
+                break  # not made by us after all, or not empty: leave it and its parents
     return None
+
+
+def _learning_state_dir(loaded: LoadedProfile, state_dir: Path | None, policy: str | None,
+                        create: bool) -> list[str]:
+    """A learning daemon saves its Q-table in the state directory, so it must be writable at start."""
+    controller = loaded.model.controller
+    if state_dir is None or not controller.enabled or (policy or controller.policy) != "learn":
+        return []
+    problem = check_state_dir(state_dir, create)
+    return [f"--state-dir: {problem}"] if problem else []
 
 
 def device_problem(device: str) -> str | None:

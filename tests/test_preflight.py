@@ -113,6 +113,25 @@ def test_state_dir_that_cannot_be_created_stops_the_daemon_at_start(tmp_path: Pa
     assert f"--state-dir: {blocker / 'state'}: state directory is not writable" in result.stderr
 
 
+def test_check_config_refuses_the_state_dir_the_daemon_would_refuse(tmp_path: Path) -> None:
+    """check-config's ok means the daemon starts: a learning profile needs a state directory it can make."""
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    result = _run("check-config", "--state-dir", str(blocker / "state"), "builtin:sim-rover")
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"--state-dir: {blocker / 'state'}: state directory is not writable (Not a directory)" in result.stderr
+    result = _run("check-config", "--state-dir", str(blocker / "state"), str(_profile(tmp_path, "controller:\n"
+                  "  policy: static\n")))
+    assert result.returncode == 0, result.stderr  # nothing is learned, nothing is saved
+
+
+def test_asking_about_a_missing_state_dir_leaves_nothing_behind(tmp_path: Path) -> None:
+    state = tmp_path / "new" / "state"
+    assert check_state_dir(state, create=False) is None
+    assert not (tmp_path / "new").exists()
+    assert check_state_dir(state) is None and state.is_dir() and not list(state.iterdir())  # the daemon keeps it
+
+
 @pytest.mark.skipif(os.geteuid() == 0, reason="root writes through directory permissions (the hardening check "
                     "mounts a read-only tmpfs instead)")
 def test_read_only_state_dir_is_caught_by_a_real_write(tmp_path: Path) -> None:

@@ -41,7 +41,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--policy", choices=POLICIES, help="override controller.policy from the profile")
     parser.add_argument(
-        "--state-dir", metavar="DIR", help="Q-table and state (default: $STATE_DIRECTORY, else $XDG_STATE_HOME/respecd)"
+        "--state-dir", metavar="DIR",
+        help="Q-table and state (default: $STATE_DIRECTORY, else $XDG_STATE_HOME/respecd, else ~/.local/state/respecd)"
     )
     parser.add_argument("--record", metavar="PATH", help="record the session to this MCAP file")
     parser.add_argument("--foxglove", metavar="[HOST:]PORT",
@@ -110,14 +111,9 @@ def prepare_state_dir(cli_value: str | None) -> Any:
 
 def preflight(loaded: Any, state_dir: Any, policy: str | None) -> None:
     """Fail at start (exit 2), not at the first save or inference: files, device, state directory."""
-    from respecd.preflight import check_profile, check_state_dir
+    from respecd.preflight import check_profile
 
-    problems = check_profile(loaded, state_dir, policy)
-    controller = loaded.model.controller
-    if controller.enabled and (policy or controller.policy) == "learn":
-        problem = check_state_dir(state_dir)
-        if problem:
-            problems.append(f"--state-dir: {problem}")
+    problems = check_profile(loaded, state_dir, policy, create_state_dir=True)
     if problems:
         raise ConfigError(f"{loaded.label}: {len(problems)} problem(s)", problems)
 
