@@ -1,9 +1,13 @@
 # respecd — two commands: `make run` (simulated rover) and `make test`.
 # A Jetson user points TORCH_SPEC at NVIDIA's wheel, e.g.
 #   make install TORCH_SPEC=/path/to/torch-2.5.0a0+nv24.08-cp310-cp310-linux_aarch64.whl
+# PyPI's Linux torch pulls ~2.5 GB of CUDA libraries; TORCH_INDEX adds PyTorch's CPU index (for torch
+# alone, not its dependencies), whose 2.13.0+cpu outranks PyPI's 2.13.0. Where it is unreachable pip
+# retries it for a few seconds and goes on; TORCH_INDEX= skips it.
 PYTHON ?= python3
 VENV ?= .venv
 TORCH_SPEC ?= torch==2.13.0
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 BIN := $(VENV)/bin
 ARGS ?=
 
@@ -16,7 +20,8 @@ install: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet "$(TORCH_SPEC)"
+	$(BIN)/pip install --quiet --no-deps "$(TORCH_SPEC)" $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX))
+	$(BIN)/pip install --quiet "$(TORCH_SPEC)"  # its dependencies, from the usual indexes
 	$(BIN)/pip install --quiet -e ".[test,lab]"
 	touch $@
 
