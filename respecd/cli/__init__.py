@@ -25,7 +25,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "calibrate": ("respecd.cli.calibrate", "fit the detector's confidence calibration per RGB size into a checkpoint"),
     "radar-profile": ("respecd.cli.radar_profile", "print the radar chirp cfg and its four figures"),
     "radar-dump": ("respecd.cli.radar_dump", "decode a recorded radar data-port capture, one line per frame"),
-    "log": ("respecd.cli.log", "inspect a recorded MCAP session log: `log info LOG`"),
+    "log": ("respecd.cli.log", "inspect or convert a session log: `log info LOG|BAG`, "
+            "`log export LOG --to rosbag2 DIR`"),
     "train-policy": ("respecd.cli.train_policy", "train the Q-table on the simulated scenarios (cached outcomes)"),
     "policy": ("respecd.cli.policy", "print a learned Q-table as a policy: `policy show FILE`"),
 }

@@ -14,13 +14,15 @@ from respecd.errors import InputError
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", default="builtin:sim-rover", help="profile (sensors, controller, simulation)")
     parser.add_argument("--weights", help="detector checkpoint (default: the profile's perception.weights)")
-    parser.add_argument("--episodes", type=int, default=40, help="episodes of the six scenarios (default 40)")
+    parser.add_argument("--episodes", type=int, default=40,
+                        help="episodes of the seven scenarios (the paper's six, then behind-curtain; default 40)")
     parser.add_argument("--seeds", type=int, default=4, help="training world seeds 0..N-1 (default 4)")
     parser.add_argument("--min-s", type=float, default=10.0, help="shortest scenario run in an episode (s)")
     parser.add_argument("--max-s", type=float, default=30.0, help="longest scenario run in an episode (s)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the episode order, durations and world seeds")
     parser.add_argument("--samples-per-s", type=float, default=1.0, help="detector outcomes per scenario second")
-    parser.add_argument("--state-dir", help="state directory (default: $STATE_DIRECTORY, $XDG_STATE_HOME/respecd)")
+    parser.add_argument("--state-dir", help="state directory (default: $STATE_DIRECTORY, else $XDG_STATE_HOME/respecd, "
+                        "else ~/.local/state/respecd)")
     parser.add_argument("--out", type=Path, help="table file (default: the profile's table in the state directory)")
     parser.add_argument("--curve", type=Path, help="learning-curve PNG (default: beside the table)")
     parser.add_argument("--resume", action="store_true", help="continue from the table at --out if it matches")
