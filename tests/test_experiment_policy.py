@@ -336,6 +336,25 @@ def test_table_choice_counts_criteria_then_accuracy_then_compute(tmp_path: Path)
     assert choose({"A": a, "C": c}) == "A"  # 0.010 more accurate wins before compute
 
 
+@pytest.mark.parametrize(("tool", "args", "says"), [
+    ("choose", [], "choose: no candidates: expected NAME=FILE.json"),
+    ("choose", ["A={json}"], "no 'goals' in it: expected a `respecd bench scenarios --json` result"),
+    ("report", ["{garbage}", "{png}"], "not JSON"),
+    ("report", ["{json}", "{png}"], "no 'settings', 'scenarios'; expected a `respecd bench scenarios --json` result"),
+])
+def test_result_tools_refuse_files_that_are_not_headline_results(tmp_path: Path, tool: str, args: list[str],
+                                                                 says: str) -> None:
+    paths = {"json": tmp_path / "other.json", "garbage": tmp_path / "garbage.json", "png": tmp_path / "f.png"}
+    paths["json"].write_text('{"mAP": 0.9}\n')
+    paths["garbage"].write_bytes(b"\x89PNG not json")
+    done = subprocess.run([sys.executable, "-m", f"respecd.lab.experiment.{tool}",
+                           *(a.format(**{k: str(v) for k, v in paths.items()}) for a in args)],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert says in done.stderr and "choose: choose:" not in done.stderr
+    assert not paths["png"].exists()
+
+
 def test_fixed_configuration_parses_every_input_and_off() -> None:
     from respecd.lab.experiment.fixed import parse_configuration
 

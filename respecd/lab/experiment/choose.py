@@ -15,7 +15,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from respecd.errors import InputError
+from respecd.errors import InputError, report
 
 MAP_EQUAL = 0.005  # RL mAP@0.5 differences below this are a tie
 
@@ -28,7 +28,7 @@ def criteria_met(run: dict[str, Any]) -> int:
 def choose(runs: dict[str, dict[str, Any]]) -> str:
     """The winning candidate's name among ``runs`` (name -> a ``bench scenarios --json`` document)."""
     if not runs:
-        raise InputError("choose: no candidates")
+        raise InputError("no candidates: expected NAME=FILE.json, one per `respecd bench scenarios --json` result")
     best = max(criteria_met(r) for r in runs.values())
     left = {n: r for n, r in runs.items() if criteria_met(r) == best}
     top_map = max(r["pooled"]["rl"]["map50"] for r in left.values())
@@ -43,7 +43,9 @@ def _read(arg: str) -> tuple[str, dict[str, Any]]:
     try:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
         doc["goals"], doc["pooled"]["rl"]["map50"], doc["summary"]["rl_vs_heuristic"]["compute_reduction"]
-    except (OSError, ValueError, KeyError, TypeError) as err:
+    except KeyError as err:
+        raise InputError(f"{path}: no {err} in it: expected a `respecd bench scenarios --json` result") from err
+    except (OSError, ValueError, TypeError) as err:
         raise InputError(f"{path}: expected a `respecd bench scenarios --json` result ({err})") from err
     return name, doc
 
@@ -56,5 +58,4 @@ if __name__ == "__main__":
                   f"{-100 * r['summary']['rl_vs_heuristic']['compute_reduction']:+.1f} % vs heuristic", file=sys.stderr)
         print(choose(candidates))
     except InputError as err:
-        print(f"choose: {err}", file=sys.stderr)
-        sys.exit(2)
+        sys.exit(report(err, "choose"))

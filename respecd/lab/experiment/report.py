@@ -170,9 +170,35 @@ def figure(result: dict[str, Any], path: Path, title: str = "respecd bench scena
     return path
 
 
-# re-draw a figure from a saved result: python -m respecd.lab.experiment.report IN.json OUT.png
-if __name__ == "__main__":
+def main(argv: list[str] | None = None) -> int:
+    """Re-draw the figure of a saved ``respecd bench scenarios --json`` result."""
+    import argparse
     import json
-    import sys
 
-    figure(json.loads(Path(sys.argv[1]).read_text()), Path(sys.argv[2]))
+    from respecd.errors import InputError, report
+
+    parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.report", description=main.__doc__)
+    parser.add_argument("result", type=Path, help="the JSON result")
+    parser.add_argument("png", type=Path, help="the figure to write")
+    a = parser.parse_args(argv)
+    expected = "expected a `respecd bench scenarios --json` result"
+    try:
+        result = json.loads(a.result.read_text(encoding="utf-8"))
+    except OSError as err:
+        return report(InputError(f"{a.result}: cannot read it ({err.strerror or err}); {expected}"), "report")
+    except (UnicodeDecodeError, json.JSONDecodeError) as err:
+        return report(InputError(f"{a.result}: not JSON ({err}); {expected}"), "report")
+    missing = [key for key in ("settings", "scenarios") if not isinstance(result, dict) or key not in result]
+    if missing:
+        return report(InputError(f"{a.result}: no {', '.join(map(repr, missing))}; {expected}"), "report")
+    if a.png.is_dir():
+        return report(InputError(f"{a.png}: is a directory; expected the PNG file to write"), "report")
+    try:
+        print(figure(result, a.png))
+    except (KeyError, IndexError, TypeError) as err:
+        return report(InputError(f"{a.result}: missing or malformed entry ({err!r}); {expected}"), "report")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
