@@ -25,11 +25,14 @@ from respecd.perception.config import resolve_weights
 
 
 def check_profile(loaded: LoadedProfile, state_dir: Path | None = None, policy: str | None = None,
-                  create_state_dir: bool = False) -> list[str]:
+                  create_state_dir: bool = False, record: str | None = None) -> list[str]:
     """Every problem that would stop this profile from running on this machine. The daemon
     creates a missing state directory (``create_state_dir``); check-config only asks whether
-    it could."""
+    it could. ``record``: the daemon's ``--record``, which replaces ``recording.path`` (and is
+    checked as a flag)."""
     problems = [*_weights(loaded), *_sensor_files(loaded), *_qtable(loaded, state_dir, policy)]
+    if record is None:
+        problems += _recording(loaded)
     profile = loaded.model
     if profile.perception.enabled:
         reason = device_problem(profile.perception.device)
@@ -42,6 +45,8 @@ def check_state_dir(path: Path, create: bool = True) -> str | None:
     """Why ``path`` cannot hold the Q-table, or None. A real write is tried: permissions alone do
     not show a read-only mount or a full disk. Without ``create`` (check-config) the folders made
     for the try are removed again, so asking leaves nothing behind."""
+    if path.exists() and not path.is_dir():
+        return f"{path}: is a file, not a directory; the state directory holds the Q-table"
     made = [p for p in (path, *path.parents) if not os.path.exists(p)]  # deepest first
     try:
         path.mkdir(parents=True, exist_ok=True)
@@ -66,6 +71,18 @@ def _learning_state_dir(loaded: LoadedProfile, state_dir: Path | None, policy: s
         return []
     problem = check_state_dir(state_dir, create)
     return [f"--state-dir: {problem}"] if problem else []
+
+
+def _recording(loaded: LoadedProfile) -> list[str]:
+    """A recording profile must be able to open its file at start: the recorder would pause at its
+    first write (blaming the disk) and the session would go unrecorded."""
+    from respecd.cli.outputs import recording_problem
+
+    recording = loaded.model.recording
+    if not recording.enabled:
+        return []
+    problem = recording_problem(recording.path)
+    return [_at(loaded, ("recording", "path"), problem)] if problem else []
 
 
 def device_problem(device: str) -> str | None:

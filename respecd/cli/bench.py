@@ -9,6 +9,7 @@ import platform
 from pathlib import Path
 from typing import Any
 
+from respecd.cli.outputs import check_output_file
 from respecd.lab.bench import BENCHES
 
 
@@ -24,6 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def main(args: argparse.Namespace) -> int:
     from respecd.logs import configure_logging
 
+    check_output_file("--json", args.json, example=f"bench-{args.bench}.json")  # before the run; folders are made
     configure_logging("console", "warning")
     figures: dict[str, Any] = importlib.import_module(BENCHES[args.bench]).run(args)
     figures.setdefault(

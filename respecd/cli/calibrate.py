@@ -15,6 +15,7 @@ import json
 import sys
 from pathlib import Path
 
+from respecd.cli.outputs import check_output_file
 from respecd.errors import InputError
 
 
@@ -34,6 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    check_output_file("--out", args.out, example="model.pt")  # before the fit; save_payload makes the folders
+    check_output_file("--json", args.json, example="calibration.json")
     import torch
 
     from respecd.lab.detector import calibrate

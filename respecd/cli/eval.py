@@ -21,6 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from respecd.cli.args import resolution
+from respecd.cli.outputs import check_output_dir
 from respecd.errors import InputError
 
 EVAL_SCORE_THRESHOLD = 0.01
@@ -57,6 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    check_output_dir("--out", args.out)  # before the evaluation, not after it (report.write makes the folders)
     import torch
 
     from respecd.lab.detector import report as report_mod

@@ -108,9 +108,11 @@ def render_bag(d: dict[str, Any]) -> str:
 def export(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from respecd.cli.outputs import check_output_dir
     from respecd.record.reader import open_log
     from respecd.record.rosbag_out import export_rosbag2
 
+    check_output_dir("OUT_DIR", args.out, must_be_new=True)  # the bag Writer makes it and its parents
     session = open_log(args.log)
     counts = export_rosbag2(session, Path(args.out))
     print(f"{args.out}: rosbag2 (mcap, cdr), {sum(counts.values())} messages on {len(counts)} topics")

@@ -11,7 +11,7 @@ from typing import Any
 import structlog
 
 from respecd.config import DEFAULT_PROFILE, read_profile
-from respecd.errors import ConfigError
+from respecd.errors import ConfigError, InputError
 
 log = structlog.get_logger(__name__)
 
@@ -72,6 +72,7 @@ def main(args: argparse.Namespace) -> int:
     from respecd.signals import StopSignals
 
     check_flags(args)
+    check_outputs(args)
     with StopSignals() as signals:
         fmt = configure_logging(args.log_format, args.log_level, verbose=getattr(args, "verbose", False))
         if args.replay:
@@ -80,7 +81,7 @@ def main(args: argparse.Namespace) -> int:
             return run_replay(args, signals)
         loaded = read_profile(args.config)
         state_dir = prepare_state_dir(args.state_dir)
-        preflight(loaded, state_dir, args.policy)
+        preflight(loaded, state_dir, args.policy, record=args.record)
         return asyncio.run(run_live(loaded.model, args, signals, console=fmt == "console", state_dir=state_dir))
 
 
@@ -100,6 +101,23 @@ def check_flags(args: argparse.Namespace) -> None:
         raise ConfigError(f"{flags}: only for the live daemon, not with --replay")
 
 
+def check_outputs(args: argparse.Namespace) -> None:
+    """Every file this run will write can be written, checked before the session starts: a replay's
+    report and table are written only at its end, and a recording that cannot open its file loses
+    the whole session (it pauses, the daemon runs on unrecorded)."""
+    from respecd.cli.outputs import check_output_file, recording_problem
+
+    if args.replay:
+        report = check_output_file("--report", args.report, example="report.json")  # report_out.write makes folders
+        if report is not None:
+            check_output_file("--report", report.with_suffix(".png"))  # the timeline beside it
+        check_output_file("--save-table", args.save_table, example="qtable.npz")  # save_table makes folders
+    elif args.record is not None:
+        problem = recording_problem(args.record)
+        if problem:
+            raise InputError(f"--record {problem}")
+
+
 def prepare_state_dir(cli_value: str | None) -> Any:
     from respecd.control.persist import resolve_state_dir
 
@@ -109,11 +127,12 @@ def prepare_state_dir(cli_value: str | None) -> Any:
         raise ConfigError(f"--state-dir: cannot use {cli_value!r}: {err}") from err
 
 
-def preflight(loaded: Any, state_dir: Any, policy: str | None) -> None:
-    """Fail at start (exit 2), not at the first save or inference: files, device, state directory."""
+def preflight(loaded: Any, state_dir: Any, policy: str | None, record: str | None = None) -> None:
+    """Fail at start (exit 2), not at the first save or inference: files, device, state directory,
+    the profile's recording path (unless ``--record`` replaces it)."""
     from respecd.preflight import check_profile
 
-    problems = check_profile(loaded, state_dir, policy, create_state_dir=True)
+    problems = check_profile(loaded, state_dir, policy, create_state_dir=True, record=record)
     if problems:
         raise ConfigError(f"{loaded.label}: {len(problems)} problem(s)", problems)
 

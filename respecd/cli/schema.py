@@ -14,6 +14,7 @@ import json
 from importlib import resources
 from pathlib import Path
 
+from respecd.cli.outputs import check_output_file
 from respecd.config import json_schema
 from respecd.errors import InputError
 
@@ -22,7 +23,8 @@ HEADER = f"# yaml-language-server: $schema={SCHEMA_NAME}"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", metavar="FILE", help="write to FILE instead of stdout")
+    parser.add_argument("--out", metavar="FILE",
+                        help="write to FILE instead of stdout (replaced if it exists; its folder must exist)")
     parser.add_argument("--install", metavar="PROFILE_OR_DIR",
                         help=f"write {SCHEMA_NAME} beside this profile (or into this directory) for its editor header")
     parser.add_argument("--path", action="store_true", help="print where the installed package's schema file is")
@@ -36,11 +38,12 @@ def main(args: argparse.Namespace) -> int:
     if args.path:
         print(installed_path())
         return 0
+    out = check_output_file("--out", args.out, make_parents=False, example=SCHEMA_NAME)  # open() makes no folder
     text = json.dumps(json_schema(), indent=2) + "\n"
     if args.install:
         return install(Path(args.install), text)
-    if args.out:
-        with open(args.out, "w", encoding="utf-8") as fh:
+    if out is not None:
+        with open(out, "w", encoding="utf-8") as fh:
             fh.write(text)
     else:
         print(text, end="")

@@ -13,6 +13,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
+from respecd.cli.outputs import check_output_file
 from respecd.errors import InputError
 
 if TYPE_CHECKING:
@@ -82,6 +83,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
+    check_output_file("--out", args.out, example="model.pt")  # before training; checkpoint.save makes the folders
+    check_output_file("--curve", args.curve or args.out.with_name(args.out.stem + "-curve.png"))
     from respecd.lab.detector.augment import AugmentConfig
     from respecd.lab.detector.train import TrainConfig, train
     from respecd.perception.config import PerceptionConfig

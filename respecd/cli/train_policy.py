@@ -8,6 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from respecd.cli.outputs import check_output_dir, check_output_file
 from respecd.errors import InputError
 
 
@@ -49,6 +50,19 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError("--samples-per-s: expected a positive number")
 
 
+def _check_outputs(args: argparse.Namespace) -> None:
+    """The table, its curve and the outcome cache can be written: the table is saved only once an
+    episode is trained, so a path that cannot take it must stop the command before the detector loads."""
+    from respecd.control.persist import resolve_state_dir
+
+    if args.out is None:  # the table goes into the state directory (save_table makes it)
+        check_output_dir("--state-dir", resolve_state_dir(args.state_dir))
+    check_output_file("--out", args.out, example="qtable.npz")  # save_table makes the folders
+    check_output_file("--curve", args.curve, example="curve.png")  # save_curve makes the folders
+    if not args.no_cache:
+        check_output_dir("--cache-dir", args.cache_dir)  # OutcomeCache makes the folders
+
+
 def main(args: argparse.Namespace, on_table: Callable[[Any, Any], None] | None = None) -> int:
     """``on_table(table, controller)``: sees the table and a controller of its layout before training
     (``python -m respecd.lab.experiment.trace`` watches its updates there)."""
@@ -62,8 +76,11 @@ def main(args: argparse.Namespace, on_table: Callable[[Any, Any], None] | None =
     from respecd.lab.experiment.training import TrainSettings, conservative, save_curve, train
 
     _check(args)
+    _check_outputs(args)
     profile = load_profile(args.profile)
     out = args.out or table_path(resolve_state_dir(args.state_dir), profile.controller.table_file, profile.name)
+    check_output_file("--out" if args.out else "--state-dir", out, example="qtable.npz")  # the table's own name
+    check_output_file("--curve", args.curve or out.with_suffix(".curve.png"))
     probe = controller_for(profile, "learn")
     pinned = lat.load(args.latency, rgb_resolutions(probe)) if args.latency is not None else None
     detector = load_detector(profile, args.weights, args.random_detector)

@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from respecd.cli.args import resolution
+from respecd.cli.outputs import check_output_dir
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -42,6 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    check_output_dir("--keep", args.keep)  # made below with its parents
     width, height = resolution(args.resolution, "--resolution")
     with tempfile.TemporaryDirectory(prefix="respecd-bench-replay-") as scratch:
         work = Path(args.keep) if args.keep else Path(scratch)

@@ -14,6 +14,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from respecd.cli.outputs import check_output_dir, check_output_file
+
 QUICK_DURATION_S = 4.0
 
 
@@ -64,6 +66,10 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     from respecd.lab.experiment.setup import load_detector, rgb_resolutions
 
     start = time.monotonic()
+    check_output_file("--markdown", args.markdown, example="scenarios.md")  # written after every run: checked now
+    check_output_file("--figure", args.figure, example="scenarios.png")
+    if not args.no_cache:
+        check_output_dir("--cache-dir", args.cache_dir)
     _check(args)
     profile = load_profile(args.profile)
     table = _table_path(args)

@@ -21,6 +21,8 @@ from typing import Any
 
 import numpy as np
 
+from respecd.cli.outputs import check_output_dir
+
 MEDIAN_WINDOW_S = 120.0
 
 
@@ -173,6 +175,7 @@ def summary(figures: dict[str, Any]) -> str:
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
+    check_output_dir("--record", args.record)  # the recorder makes it; a file there would lose the soak's log
     warmup_min = args.warmup_min if args.warmup_min is not None else min(10.0, args.minutes / 3)
     with tempfile.TemporaryDirectory(prefix="respecd-soak-") as state_dir:
         rows, extra = asyncio.run(_soak(args, Path(state_dir)))

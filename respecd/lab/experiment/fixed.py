@@ -116,6 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     import json
     import sys
 
+    from respecd.cli.outputs import check_output_dir, check_output_file
     from respecd.config import load_profile
     from respecd.lab.experiment.setup import load_detector, make_evaluator
     from respecd.sim.config import SCENARIOS
@@ -135,6 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="write the figures here too")
     a = parser.parse_args(argv)
     try:
+        check_output_file("--json", a.json, make_parents=False, example="fixed.json")  # written after the scoring
+        check_output_dir("--cache-dir", a.cache_dir)
         configs = {text: parse_configuration(text) for text in a.configuration}
         profile = load_profile(a.profile)
     except InputError as err:

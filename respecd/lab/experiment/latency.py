@@ -147,4 +147,12 @@ if __name__ == "__main__":
     parser.add_argument("--clock", choices=sorted(CLOCKS), default="cpu")
     parser.add_argument("--seed", type=int, default=500, help="world seed of the frames (default 500: validation)")
     a = parser.parse_args()
-    print(json.dumps(write_reference(a.out, a.profile, a.weights, a.repeats, a.clock, a.seed)["latency_ms"]))
+    from respecd.cli.outputs import check_output_file
+    from respecd.errors import ConfigError, InputError, report
+
+    try:  # the file is written after the measurement: a path that cannot take it is refused first
+        check_output_file("OUT", a.out, make_parents=False, example="latency.json")
+        doc = write_reference(a.out, a.profile, a.weights, a.repeats, a.clock, a.seed)
+    except (ConfigError, InputError) as err:
+        raise SystemExit(report(err, "latency")) from None
+    print(json.dumps(doc["latency_ms"]))

@@ -106,6 +106,7 @@ def line(label: str, result: PinnedRun, reference: PinnedRun) -> str:
 def main(argv: list[str] | None = None) -> int:
     import json
 
+    from respecd.cli.outputs import check_output_dir, check_output_file
     from respecd.config import load_profile
     from respecd.control.shipped import shipped_table_path
     from respecd.lab.experiment import latency as lat
@@ -129,6 +130,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="write the figures here too")
     a = parser.parse_args(argv)
     try:
+        check_output_file("--json", a.json, make_parents=False, example="pin.json")  # written after the runs
+        check_output_dir("--cache-dir", a.cache_dir)
         profile = load_profile(a.profile)
         table = a.table or shipped_table_path()
         reference_controller = rl_controller(profile, table)

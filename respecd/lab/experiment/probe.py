@@ -89,6 +89,7 @@ if __name__ == "__main__":
     import json
     import sys
 
+    from respecd.cli.outputs import check_output_dir, check_output_file
     from respecd.errors import InputError
 
     parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.probe", description=probe.__doc__)
@@ -103,6 +104,8 @@ if __name__ == "__main__":
                         help="box score threshold 0..1 (default: the profile's)")
     a = parser.parse_args()
     try:
+        check_output_file("--json", a.json, make_parents=False, example="probe.json")  # written after the probe
+        check_output_dir("--cache-dir", a.cache_dir)
         table = probe(a.profile, a.seed, a.worlds, a.duration, a.latency, a.cache_dir,
                       score_threshold=a.score_threshold)
     except InputError as err:  # a bad profile or latency file: where and what was expected, exit 2

@@ -97,6 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     import json
 
     from respecd.cli import train_policy
+    from respecd.cli.outputs import check_output_file
 
     parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.trace", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -113,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         tracers.append(Tracer(table, controller, a.state, a.block))
 
     try:
+        check_output_file("--json", a.json, example="trace.json")  # written after the training; folders are made
         code = train_policy.main(a, on_table=watch)
     except (ConfigError, InputError) as err:
         return report(err, "trace")
