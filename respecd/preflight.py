@@ -15,7 +15,6 @@ describe another machine. Write ``device: cpu`` to run on the CPU.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
@@ -47,19 +46,11 @@ def check_state_dir(path: Path, create: bool = True) -> str | None:
     for the try are removed again, so asking leaves nothing behind."""
     if path.exists() and not path.is_dir():
         return f"{path}: is a file, not a directory; the state directory holds the Q-table"
-    made = [p for p in (path, *path.parents) if not os.path.exists(p)]  # deepest first
-    try:
-        path.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=path, prefix=".respecd-write-check-"):
-            pass
-    except OSError as err:
+    from respecd.cli.outputs import write_error
+
+    err = write_error(path, keep=create)
+    if err is not None:
         return f"{path}: state directory is not writable ({err.strerror or err}); the Q-table could not be saved"
-    finally:
-        for folder in made if not create else ():
-            try:
-                folder.rmdir()
-            except OSError:
-                break  # not made by us after all, or not empty: leave it and its parents
     return None
 
 

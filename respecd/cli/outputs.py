@@ -87,19 +87,29 @@ def _folder_problem(path: Path, folder: Path, make_parents: bool) -> str | None:
 
 def _try_write(path: Path, folder: Path) -> str | None:
     """A real write into ``folder`` (made for the try when missing, and removed again)."""
+    made = [p for p in (folder, *folder.parents) if not os.path.exists(p)]
+    err = write_error(folder)
+    if err is None:
+        return None
+    where = next((p for p in (folder, *folder.parents) if p not in made), folder)
+    reason = err.strerror or str(err)
+    if err.errno == errno.ENOENT and where.is_dir():  # /proc, /sys: a folder that takes no new files
+        reason = "it takes no new files"
+    return f"{path}: cannot write in {where} ({reason})"
+
+
+def write_error(folder: Path, keep: bool = False) -> OSError | None:
+    """The error a real write into ``folder`` meets, or None. Missing folders are made for it and,
+    unless ``keep``, removed again (deepest first, only those this call made)."""
     made = [p for p in (folder, *folder.parents) if not os.path.exists(p)]  # deepest first
     try:
         folder.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=folder, prefix=".respecd-write-check-"):
             pass
     except OSError as err:
-        where = next((p for p in (folder, *folder.parents) if p not in made), folder)
-        reason = err.strerror or str(err)
-        if err.errno == errno.ENOENT and where.is_dir():  # /proc, /sys: a folder that takes no new files
-            reason = "it takes no new files"
-        return f"{path}: cannot write in {where} ({reason})"
+        return err
     finally:
-        for made_folder in made:
+        for made_folder in made if not keep else ():
             if not made_folder.exists():
                 continue  # the mkdir stopped above it
             try:
