@@ -158,17 +158,26 @@ def _read_source(source: str) -> tuple[str, str]:
         return f"<{source}>", resource.read_text(encoding="utf-8")
     path = Path(source)
     try:
-        size = path.stat().st_size
-        if path.is_file() and size > MAX_BYTES:
+        with path.open("rb") as handle:  # at most one byte past the limit, whatever the file is
+            data = handle.read(MAX_BYTES + 1)  # (/dev/zero or a FIFO has no size to check first)
+        if len(data) > MAX_BYTES:
+            size = path.stat().st_size if path.is_file() else 0
+            what = f"is {size} bytes, more than" if size > MAX_BYTES else "gives more bytes than"
             raise ConfigError(
-                f"{path}:1: profile is {size} bytes, more than the {MAX_BYTES} allowed "
+                f"{path}:1: profile {what} the {MAX_BYTES} allowed "
                 "(a profile is a few kB: is this the right file?)"
             )
-        return str(path), path.read_text(encoding="utf-8")
+        return str(path), data.decode("utf-8")
     except FileNotFoundError as err:
         raise ConfigError(f"{path}: no such file") from err
-    except (OSError, UnicodeDecodeError) as err:
-        raise ConfigError(f"{path}: cannot read: {err}") from err
+    except IsADirectoryError as err:
+        raise ConfigError(f"{path}: is a directory, expected a profile (a YAML file)") from err
+    except UnicodeDecodeError as err:
+        line = err.object[: err.start].count(b"\n") + 1
+        raise ConfigError(f"{path}:{line}: not UTF-8 text: byte {err.start} is {err.object[err.start]:#04x} "
+                          "(expected a YAML profile: is this the right file?)") from err
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read: {err.strerror or err}") from err
 
 
 def _format_problem(label: str, lines: dict[tuple[Any, ...], int], error: Any) -> str:

@@ -18,6 +18,7 @@ import os
 from pathlib import Path
 from typing import Any
 
+from respecd import filekind
 from respecd.config import LoadedProfile
 from respecd.errors import ConfigError
 from respecd.perception.config import resolve_weights
@@ -29,7 +30,8 @@ def check_profile(loaded: LoadedProfile, state_dir: Path | None = None, policy: 
     creates a missing state directory (``create_state_dir``); check-config only asks whether
     it could. ``record``: the daemon's ``--record``, which replaces ``recording.path`` (and is
     checked as a flag)."""
-    problems = [*_weights(loaded), *_sensor_files(loaded), *_qtable(loaded, state_dir, policy)]
+    problems = [*_weights(loaded), *_replay_sensors(loaded), *_sensor_files(loaded),
+                *_qtable(loaded, state_dir, policy)]
     if record is None:
         problems += _recording(loaded)
     profile = loaded.model
@@ -117,9 +119,32 @@ def _weights(loaded: LoadedProfile) -> list[str]:
         path = resolve_weights(perception.weights)
     except ConfigError as err:
         return [_at(loaded, ("perception", "weights"), str(err))]
+    if path.is_dir():
+        return [_at(loaded, ("perception", "weights"), f"{path}: is a directory, expected a checkpoint file")]
     if not path.is_file():
         return [_at(loaded, ("perception", "weights"), f"{path}: no such checkpoint file")]
+    try:
+        head = filekind.read_head(path)
+    except OSError as err:
+        return [_at(loaded, ("perception", "weights"), f"{path}: cannot read checkpoint: {err.strerror or err}")]
+    if not head.startswith(filekind.ZIP_MAGIC) and not filekind.is_pickle(head):  # torch's formats
+        return [_at(loaded, ("perception", "weights"), f"{path}: not a torch checkpoint: it looks like "
+                    f"{filekind.describe(head, path)}; expected a respecd checkpoint written by `respecd train` "
+                    "(a torch zip archive)")]
     return []
+
+
+def _replay_sensors(loaded: LoadedProfile) -> list[str]:
+    """A ``replay`` sensor serves frames of an opened log: only ``respecd --replay LOG`` has one
+    (and builds its own replay sensors from the profile). Live, it could never start."""
+    return [
+        _at(loaded, ("sensors", i, "driver"),
+            "driver 'replay' serves a recorded log and works only under `respecd --replay LOG`, which swaps "
+            "every sensor of the profile for a replay sensor itself; for a live run name a device driver "
+            "(sim, uvc, flirone, iwr6843, realsense)")
+        for i, sensor in enumerate(loaded.model.sensors)
+        if getattr(sensor, "driver", None) == "replay"
+    ]
 
 
 def _sensor_files(loaded: LoadedProfile) -> list[str]:

@@ -46,11 +46,24 @@ def parse(label: str, text: str) -> ParsedYaml:
         if scan.problems:
             raise ConfigError(f"{label}: {len(scan.problems)} problem(s)", [p for _, p in sorted(scan.problems)])
         return ParsedYaml(yaml.load(text, Loader=Loader), scan.lines)  # noqa: S506 - a safe loader
+    except yaml.reader.ReaderError as err:  # a character YAML never allows; said without pyyaml's "position N"
+        line, column = _line_column(text, err.position)
+        char = err.character if isinstance(err.character, int) else ord(err.character)
+        raise ConfigError(
+            f"{label}:{line}: not valid YAML: character U+{char:04X} at column {column}: {err.reason} "
+            "(a profile is plain UTF-8 text: is this the right file?)"
+        ) from err
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
-        line = mark.line + 1 if mark is not None else 0
-        problem = getattr(err, "problem", None) or str(err)
+        line = mark.line + 1 if mark is not None else 1  # lines are 1-based; no mark: the document as a whole
+        problem = getattr(err, "problem", None) or str(err).splitlines()[0]
         raise ConfigError(f"{label}:{line}: not valid YAML: {problem}") from err
+
+
+def _line_column(text: str, position: int) -> tuple[int, int]:
+    """1-based line and column of the character at ``position`` in ``text``."""
+    line_start = text.rfind("\n", 0, position) + 1
+    return text.count("\n", 0, position) + 1, position - line_start + 1
 
 
 @dataclass

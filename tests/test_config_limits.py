@@ -124,3 +124,26 @@ def test_paths_stay_inside_their_directories(tmp_path: Path) -> None:
     assert "controller.table_file: Value error, must be a file name inside the state directory" in problem
     with pytest.raises(ConfigError, match="no built-in profile"):
         load_profile("builtin:../configs/sim-rover")
+
+
+def test_a_control_character_is_named_by_its_1_based_line_without_pyyamls_position(tmp_path: Path) -> None:
+    problem, = problems_of(tmp_path, "name: r\x15over\n")
+    assert problem == ("P:1: not valid YAML: character U+0015 at column 8: control characters are not allowed "
+                       "(a profile is plain UTF-8 text: is this the right file?)")
+    problem, = problems_of(tmp_path, "name: rover\nsensors:\n  - {name: \"a\x01\"}\n")
+    assert problem.startswith("P:3: not valid YAML: character U+0001 at column 14") and "position" not in problem
+
+
+def test_a_device_is_refused_by_size_not_read_whole(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"/dev/zero:1: profile gives more bytes than the 262144 allowed"):
+        read_profile("/dev/zero")
+    result = subprocess.run(["bash", "-c", f"ulimit -v 3000000; exec {sys.executable} -m respecd.cli check-config "
+                             "/dev/zero"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "Traceback" not in result.stderr and "262144" in result.stdout + result.stderr
+
+
+def test_bytes_that_are_not_utf8_are_named_by_offset(tmp_path: Path) -> None:
+    path = tmp_path / "p.yaml"
+    path.write_bytes(b"name: rover\n\x85x: 1\n")
+    with pytest.raises(ConfigError, match=r"p\.yaml:2: not UTF-8 text: byte 12 is 0x85 \(expected a YAML profile"):
+        read_profile(path)

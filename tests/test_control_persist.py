@@ -142,3 +142,37 @@ def test_factored_table_round_trips_and_a_moves_layout_does_not_load_it(tmp_path
     assert np.array_equal(fresh.table.q, learned.table.q) and fresh.table.updates == 4
     moves = controller("moves")
     assert moves.table is not None and not load_into(path, moves.table, moves.layout())
+
+
+def test_a_file_of_random_bytes_is_not_passed_off_with_numpys_pickle_advice(tmp_path: Path) -> None:
+    path = tmp_path / "garbage.npz"
+    path.write_bytes(np.random.default_rng(3).bytes(20_000))
+    with pytest.raises(InputError) as info:
+        read_table(path)
+    message = str(info.value)
+    assert message.startswith(f"{path}: not a respecd Q-table: it looks like unrecognised binary data")
+    assert "an .npz of plain arrays q, visits and meta" in message
+    assert "allow_pickle" not in message and "pickle.load" not in message
+
+
+def test_an_npz_with_an_object_array_is_refused_without_suggesting_unsafe_loading(tmp_path: Path) -> None:
+    path = tmp_path / "objects.npz"
+    with path.open("wb") as f:
+        np.savez(f, q=np.array([{"a": 1}], dtype=object), visits=np.zeros(1), meta=np.zeros(1, np.uint8))
+    with pytest.raises(InputError) as info:
+        read_table(path)
+    message = str(info.value)
+    assert "objects.npz: not a respecd Q-table: array 'q' holds Python objects" in message
+    assert "allow_pickle" not in message and "trust" not in message
+
+
+def test_policy_show_on_garbage_exits_2(tmp_path: Path) -> None:
+    import subprocess
+    import sys
+
+    path = tmp_path / "garbage2.npz"
+    path.write_bytes(np.random.default_rng(4).bytes(20_000))
+    result = subprocess.run([sys.executable, "-m", "respecd.cli", "policy", "show", str(path)],
+                            capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"{path}: not a respecd Q-table" in result.stderr and "allow_pickle" not in result.stderr

@@ -53,7 +53,8 @@ def test_policy_show_limit(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     assert "(1 of 2 visited states shown, sorted by q; --limit 0 shows all)" in out
 
 
-@pytest.mark.parametrize(("content", "message"), [(None, "no such file"), (b"junk", "not a readable .npz")])
+@pytest.mark.parametrize(("content", "message"), [(None, "no such file"),
+                                                  (b"junk", "not a respecd Q-table: it looks like text")])
 def test_policy_show_bad_file_is_one_line_exit_2(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], content: bytes | None, message: str
 ) -> None:

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -39,8 +42,59 @@ def test_round_trip_gives_identical_outputs(tmp_path: Path) -> None:
 def test_garbage_file_is_a_clear_config_error(tmp_path: Path) -> None:
     path = tmp_path / "broken.pt"
     path.write_bytes(b"this is not a checkpoint")
-    with pytest.raises(ConfigError, match=r"broken\.pt: not a loadable torch checkpoint"):
+    with pytest.raises(ConfigError, match=r"broken\.pt: not a torch checkpoint: it looks like text"):
         checkpoint.load(str(path))
+
+
+def _npz(path: Path) -> None:
+    with path.open("wb") as f:
+        np.savez(f, q=np.zeros((3, 2)), visits=np.zeros((3, 2)))
+
+
+@pytest.mark.parametrize(("name", "write", "looks_like"), [
+    ("random.pt", lambda p: p.write_bytes(np.random.default_rng(1).bytes(20_000)), "unrecognised binary data"),
+    ("profile.yaml", lambda p: p.write_text("name: rover\nsensors: []\n"), "text"),
+    ("session.mcap", lambda p: p.write_bytes(b"\x89MCAP0\r\n" + bytes(200)), "an MCAP file"),
+    ("model.onnx", lambda p: p.write_bytes(b"\x08\x06\x12\x07pytorch\x1a\x031.1" + bytes(100)), "an ONNX model"),
+    ("qtable.npz", _npz, "a NumPy .npz archive"),
+])
+def test_a_file_that_is_no_torch_file_is_not_called_one_of_python_objects(tmp_path: Path, name: str, write,
+                                                                           looks_like: str) -> None:
+    path = tmp_path / name
+    write(path)
+    with pytest.raises(ConfigError) as info:
+        checkpoint.load(str(path))
+    message = str(info.value)
+    assert message.startswith(f"{path}: not a torch checkpoint: it looks like {looks_like}")
+    assert "expected a respecd checkpoint written by `respecd train` (a torch zip archive)" in message
+    for wrong in ("Python objects", "enforce fail", "inline_container", "re-export"):
+        assert wrong not in message, message
+
+
+def test_a_directory_and_an_empty_file_say_so(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=f"{tmp_path}: is a directory, expected a respecd checkpoint"):
+        checkpoint.load(str(tmp_path))
+    (tmp_path / "empty.pt").write_bytes(b"")
+    with pytest.raises(ConfigError, match=r"empty\.pt: empty file \(0 bytes\), expected a respecd checkpoint"):
+        checkpoint.load(str(tmp_path / "empty.pt"))
+
+
+def test_a_truncated_real_checkpoint_is_called_truncated(tmp_path: Path) -> None:
+    good = tmp_path / "good.pt"
+    checkpoint.save(good, FusionNet(TINY))
+    cut = tmp_path / "cut.pt"
+    cut.write_bytes(good.read_bytes()[:5000])
+    with pytest.raises(ConfigError, match=r"cut\.pt: not a loadable torch checkpoint \(damaged or truncated"):
+        checkpoint.load(str(cut))
+
+
+def test_eval_with_weights_that_are_no_checkpoint_exits_2(tmp_path: Path) -> None:
+    path = tmp_path / "garbage.pt"
+    path.write_bytes(np.random.default_rng(2).bytes(20_000))
+    result = subprocess.run([sys.executable, "-m", "respecd.cli", "eval", "--data", "sim", "--weights", str(path),
+                             "--out", str(tmp_path / "ev")], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"respecd: {path}: not a torch checkpoint" in result.stderr and "Python objects" not in result.stderr
 
 
 def test_foreign_torch_file_is_rejected(tmp_path: Path) -> None:
@@ -99,3 +153,16 @@ def test_missing_files() -> None:
         checkpoint.load("/nonexistent/model.pt")
     with pytest.raises(ConfigError, match="no built-in checkpoint named 'nope'"):
         checkpoint.load("builtin:nope")
+
+
+def test_bench_replay_refuses_bad_weights_before_its_recording_phase(tmp_path: Path) -> None:
+    import time
+
+    path = tmp_path / "garbage.pt"
+    path.write_bytes(np.random.default_rng(6).bytes(20_000))
+    start = time.monotonic()
+    result = subprocess.run([sys.executable, "-m", "respecd.cli", "bench", "replay", "--weights", str(path),
+                             "--seconds", "1"], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"{path}: not a torch checkpoint" in result.stderr
+    assert time.monotonic() - start < 20  # the recording phase alone took over 30 s

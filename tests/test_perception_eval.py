@@ -179,4 +179,4 @@ def test_eval_command_rejects_a_bad_checkpoint(tmp_path: Path, capsys) -> None:
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"\x00" * 10)
     assert cli_main(["eval", "--weights", str(bad), "--out", str(tmp_path)]) == 2
-    assert "bad.pt: not a loadable torch checkpoint" in capsys.readouterr().err
+    assert "bad.pt: not a torch checkpoint: it looks like" in capsys.readouterr().err

@@ -165,3 +165,27 @@ def test_read_only_mounted_state_dir_is_exit_2_at_start(tmp_path: Path) -> None:
         subprocess.run(["umount", str(state)], check=False)
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert f"--state-dir: {state}: state directory is not writable (Read-only file system)" in result.stderr
+
+
+def test_a_replay_sensor_outside_replay_is_a_profile_error(tmp_path: Path) -> None:
+    extra = "  - {name: imu2, driver: replay, source: nope.mcap, modality: imu, rate_hz: 30}\n"
+    path = _profile(tmp_path, extra)
+    problem, = check_profile(read_profile(path))
+    assert problem.startswith(f"{path}:{_line(path, extra.rstrip())}: sensors.5.driver: driver 'replay' serves a "
+                              "recorded log and works only under `respecd --replay LOG`")
+    result = _run("check-config", str(path))
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert "sensors.5.driver: driver 'replay'" in result.stdout + result.stderr
+
+
+def test_weights_that_are_a_directory_or_no_torch_file_are_named(tmp_path: Path) -> None:
+    (tmp_path / "adir").mkdir()
+    path = _profile(tmp_path, f"perception:\n  weights: {tmp_path / 'adir'}\n")
+    problem, = check_profile(read_profile(path))
+    assert problem.endswith(f"perception.weights: {tmp_path / 'adir'}: is a directory, expected a checkpoint file")
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(os.urandom(20_000).replace(b"PK", b"pk").lstrip(b"\x80"))
+    path = _profile(tmp_path, f"perception:\n  weights: {garbage}\n", "q.yaml")
+    problem, = check_profile(read_profile(path))
+    assert f"perception.weights: {garbage}: not a torch checkpoint: it looks like" in problem
+    assert "expected a respecd checkpoint written by `respecd train`" in problem

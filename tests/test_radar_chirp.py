@@ -176,6 +176,8 @@ def test_read_cfg_errors_name_the_file(tmp_path: Path) -> None:
     partial.write_text("% only comments\nsensorStop\nguiMonitor -1 1 0 0 0 0 1\n")
     with pytest.raises(InputError, match="partial.cfg: cfg lacks channelCfg, profileCfg, chirpCfg, frameCfg"):
         cfg.read_cfg(partial)
+    with pytest.raises(InputError, match="/dev/zero: more than 262144 bytes, expected a cfg file"):
+        cfg.read_cfg("/dev/zero")  # read whole, it was a MemoryError
 
 
 def test_uart_model_matches_the_radars_own_transmit_time() -> None:

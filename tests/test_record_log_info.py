@@ -54,3 +54,33 @@ def test_info_on_missing_file_is_exit_2(tmp_path: Path, capsys: pytest.CaptureFi
     assert main(["log", "info", str(tmp_path / "none.mcap")]) == 2
     err = capsys.readouterr().err
     assert "none.mcap: no such file" in err and "Traceback" not in err
+
+
+def test_a_log_that_cannot_be_read_is_exit_2_without_traceback(small_log: Path) -> None:
+    """chmod 000 as a user who may not read it (root reads anyway: uid 65534 through setpriv)."""
+    import os
+    import shutil
+    import subprocess
+    import sys
+    import tempfile
+
+    if os.geteuid() == 0 and shutil.which("setpriv") is None:
+        pytest.skip("root reads through permissions and setpriv is missing")
+    folder = Path(tempfile.mkdtemp(prefix="respecd-noperm-"))
+    try:
+        folder.chmod(0o755)
+        log = folder / "noperm.mcap"
+        shutil.copy(small_log, log)
+        log.chmod(0)
+        drop = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"] if os.geteuid() == 0 else []
+        cli = [*drop, sys.executable, "-m", "respecd.cli"]
+        env = {**os.environ, "HOME": str(folder), "XDG_STATE_HOME": str(folder), "XDG_CACHE_HOME": str(folder)}
+        for args in (["log", "info", str(log)], ["--replay", str(log), "--speed", "max"],
+                     ["log", "export", str(log), "--to", "rosbag2", str(folder / "out")]):
+            result = subprocess.run([*cli, *args], capture_output=True, text=True, timeout=120, env=env,
+                                    cwd=folder)
+            assert result.returncode == 2, (args, result.stderr)
+            assert "Traceback" not in result.stderr
+            assert f"respecd: {log}: cannot read session log: Permission denied" in result.stderr
+    finally:
+        shutil.rmtree(folder)

@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import yaml
 from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
@@ -148,3 +149,60 @@ def test_guess_prefers_a_colour_camera_and_reads_depth_by_name() -> None:
         ("/cam/left/image_raw", "sensor_msgs/msg/Image"), ("/camera/color/image_raw", "sensor_msgs/msg/Image"),
         ("/camera/depth/image_rect_raw", "sensor_msgs/msg/Image"), ("/odom", "nav_msgs/msg/Odometry")]}
     assert guess_topics(channels) == {"rgb": "/camera/color/image_raw", "depth": "/camera/depth/image_rect_raw"}
+
+
+@pytest.mark.parametrize(("content", "offset", "found"), [
+    (np.random.default_rng(5).bytes(20_000), 0, "unrecognised binary data"),
+    (b"#ROSBAG V1.2\n" + bytes(100), 9, "unrecognised binary data"),
+    (b"hello\n", 0, "text"),
+])
+def test_a_bag_with_a_wrong_header_says_what_a_bag_starts_with(tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                              content: bytes, offset: int, found: str) -> None:
+    path = tmp_path / "garbage.bag"
+    path.write_bytes(content)
+    for argv in (["log", "info", str(path)], ["--replay", str(path), "--speed", "max"]):
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert f"{path}: not a ROS 1 bag: byte {offset} is " in err and "utf-8" not in err
+        assert "starts with b'#ROSBAG V2.0\\n'" in err and "rosbag2 is a folder with metadata.yaml" in err
+
+
+def test_a_cut_ros1_bag_names_where_its_index_should_be(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    from rosbags.rosbag1 import Writer as Writer1
+
+    whole = tmp_path / "whole.bag"
+    with Writer1(whole) as w:
+        conn = w.add_connection("/imu/data", "sensor_msgs/msg/Imu", typestore=STORE)
+        msg = STORE.types["sensor_msgs/msg/Imu"](
+            header=_header(0, "imu"), orientation=STORE.types["geometry_msgs/msg/Quaternion"](x=0, y=0, z=0, w=1),
+            orientation_covariance=np.zeros(9),
+            angular_velocity=STORE.types["geometry_msgs/msg/Vector3"](x=0, y=0, z=0),
+            angular_velocity_covariance=np.zeros(9),
+            linear_acceleration=STORE.types["geometry_msgs/msg/Vector3"](x=0, y=0, z=9.8),
+            linear_acceleration_covariance=np.zeros(9))
+        for i in range(50):
+            w.write(conn, i * 10_000_000, STORE.serialize_ros1(msg, "sensor_msgs/msg/Imu"))
+    cut = tmp_path / "cut.bag"
+    cut.write_bytes(whole.read_bytes()[:3000])
+    assert main(["log", "info", str(cut)]) == 2
+    err = capsys.readouterr().err
+    assert f"{cut}: ROS 1 bag is cut: its index is at byte " in err and "past the end of the file (3000 bytes)" in err
+
+
+def test_rosbag2_metadata_of_the_wrong_shape_names_file_line_and_field(tmp_path: Path,
+                                                                      capsys: pytest.CaptureFixture) -> None:
+    bag = tmp_path / "r2w"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: 5\n")
+    assert main(["log", "info", str(bag)]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == (f"respecd: {bag / 'metadata.yaml'}:1: rosbag2_bagfile_information: expected a mapping, "
+                           "got 5 (an integer)")
+    _write_bag(tmp_path / "good", StoragePlugin.MCAP, seconds=0.5)
+    meta = yaml.safe_load((tmp_path / "good" / "metadata.yaml").read_text())
+    meta["rosbag2_bagfile_information"]["message_count"] = []
+    (bag / "metadata.yaml").write_text(yaml.safe_dump(meta))
+    assert main(["log", "info", str(bag)]) == 2
+    err = capsys.readouterr().err
+    assert "metadata.yaml:" in err and "rosbag2_bagfile_information.message_count: expected an integer, got a list" \
+        in err and "subscriptable" not in err

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 import structlog
 
+from respecd import filekind
 from respecd.control.qlearning import QTable
 from respecd.errors import InputError
 
@@ -97,16 +98,35 @@ def save_table(path: Path, table: QTable, layout: dict[str, Any], info: dict[str
         os.close(dir_fd)
 
 
+EXPECTED = ("expected a respecd Q-table: an .npz of plain arrays q, visits and meta, as the daemon and "
+            "`respecd train-policy` write it")
+
+
 def read_table(path: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
-    """(meta, q, visits) of a table file; InputError says what is wrong with it."""
+    """(meta, q, visits) of a table file; InputError says what is wrong with it. Never numpy's own
+    advice for a file of pickled objects (load it with allow_pickle): that would run its code."""
     try:
         # open the file ourselves: np.load leaks its handle when the zip directory is torn
         with path.open("rb") as f:
+            head = f.read(filekind.HEAD)
+            if not head:
+                raise InputError(f"{path}: empty file (0 bytes), {EXPECTED}")
+            if not head.startswith((*filekind.ZIP_MAGIC, filekind.NPY_MAGIC)):
+                raise InputError(f"{path}: not a respecd Q-table: it looks like {filekind.describe(head, path)} "
+                                 f"(first bytes {head[:8]!r}); {EXPECTED}")
+            f.seek(0)
             q, visits, raw = _arrays(path, np.load(f, allow_pickle=False))
     except FileNotFoundError as err:
         raise InputError(f"{path}: no such file") from err
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as err:
-        raise InputError(f"{path}: not a readable .npz Q-table ({err})") from err
+    except IsADirectoryError as err:
+        raise InputError(f"{path}: is a directory, {EXPECTED}") from err
+    except (zipfile.BadZipFile, EOFError) as err:
+        raise InputError(f"{path}: damaged or truncated .npz archive ({err}); {EXPECTED}") from err
+    except OSError as err:
+        raise InputError(f"{path}: cannot read Q-table: {err.strerror or err}") from err
+    except ValueError as err:
+        detail = "it holds pickled Python objects" if "pickle" in str(err) else str(err)
+        raise InputError(f"{path}: not a respecd Q-table: {detail}; {EXPECTED}") from err
     try:
         meta = json.loads(raw.tobytes().decode())
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
@@ -126,7 +146,17 @@ def _arrays(path: Path, data: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     with data:
         if not {"q", "visits", "meta"} <= set(data.files):
             raise InputError(f"{path}: not a respecd Q-table (arrays q, visits, meta expected)")
-        return data["q"], data["visits"], data["meta"]
+        return _array(path, data, "q"), _array(path, data, "visits"), _array(path, data, "meta")
+
+
+def _array(path: Path, data: Any, name: str) -> np.ndarray:
+    try:
+        return np.asarray(data[name])
+    except ValueError as err:
+        if "pickle" not in str(err):
+            raise
+        raise InputError(f"{path}: not a respecd Q-table: array {name!r} holds Python objects (a pickle), "
+                         f"which respecd never loads; {EXPECTED}") from err
 
 
 def load_into(path: Path, table: QTable, layout: dict[str, Any], set_aside: bool = True) -> bool:

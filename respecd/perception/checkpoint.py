@@ -12,12 +12,14 @@ import os
 import pickle
 import re
 import warnings
+import zipfile
 from pathlib import Path
 from typing import Any
 
 import torch
 from pydantic import ValidationError
 
+from respecd import filekind
 from respecd.errors import ConfigError
 from respecd.perception.config import ModelSpec, resolve_weights
 from respecd.perception.darknet_fusion import DarknetFusionNet
@@ -72,24 +74,65 @@ def write_card(path: Path, model: Net, card: dict[str, Any]) -> Path:
 
 def read(path: Path) -> dict[str, Any]:
     """The raw checkpoint dict, validated for format; ConfigError otherwise."""
-    if not path.is_file():
-        raise ConfigError(f"{path}: no such checkpoint file")
+    zipped = _check_kind(path)
     try:
         with warnings.catch_warnings():  # torch warns about pickle protocols of files it then refuses
             warnings.simplefilter("ignore")
             payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch raises RuntimeError, UnpicklingError, EOFError... for bad files
-        raise ConfigError(f"{path}: not a loadable torch checkpoint ({load_problem(err)})") from err
+        raise ConfigError(f"{path}: not a loadable torch checkpoint ({load_problem(err, zipped)})") from err
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise ConfigError(f"{path}: not a respecd fusion checkpoint (expected format {FORMAT!r})")
     return payload
 
 
-def load_problem(err: BaseException) -> str:
+EXPECTED = "expected a respecd checkpoint written by `respecd train` (a torch zip archive)"
+
+
+def _check_kind(path: Path) -> bool:
+    """Refuse, from its first bytes, a file that is no torch file at all: torch would try it as a
+    legacy pickle and call random bytes, a YAML or an ONNX model a file of Python objects.
+    True: a torch zip archive; False: a pickle (torch's legacy format)."""
+    if path.is_dir():
+        raise ConfigError(f"{path}: is a directory, {EXPECTED}")
+    if not path.is_file():
+        raise ConfigError(f"{path}: no such checkpoint file")
+    try:
+        head = filekind.read_head(path)
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read checkpoint: {err.strerror or err}") from err
+    if not head:
+        raise ConfigError(f"{path}: empty file (0 bytes), {EXPECTED}")
+    if filekind.is_pickle(head):
+        return False  # torch.save's legacy format, or a plain pickle: torch.load(weights_only) decides
+    if head.startswith(filekind.ZIP_MAGIC) and _torch_zip(path, head):
+        return True  # torch's zip format (whole, cut or damaged: torch.load says which)
+    raise ConfigError(f"{path}: not a torch checkpoint: it looks like {filekind.describe(head, path)} "
+                      f"(first bytes {head[:8]!r}); {EXPECTED}")
+
+
+def _torch_zip(path: Path, head: bytes) -> bool:
+    """A ZIP archive torch may read: it has a ``data.pkl`` member, or its directory is unreadable
+    (cut or damaged: torch's own words then). An .npz of arrays is not one."""
+    entry = filekind.first_zip_entry(head)
+    if entry is not None and entry.endswith("data.pkl"):
+        return True
+    try:
+        with zipfile.ZipFile(path) as archive:
+            return any(name.endswith("data.pkl") for name in archive.namelist())
+    except (zipfile.BadZipFile, OSError, ValueError):
+        return entry is None or not entry.endswith(".npy")
+
+
+def load_problem(err: BaseException, zipped: bool = False) -> str:
     """Why torch refused a file, in our words. Never torch's own advice: it suggests re-running with
-    ``weights_only=False`` or allow-listing classes, which would run code from an untrusted file."""
+    ``weights_only=False`` or allow-listing classes, which would run code from an untrusted file.
+    ``zipped``: the file is a torch zip archive, so anything but its pickle's content is damage."""
     text = str(err)
-    if isinstance(err, pickle.UnpicklingError) or "Weights only load failed" in text:
+    objects = isinstance(err, pickle.UnpicklingError) or "Weights only load failed" in text
+    if zipped and not objects:
+        return "damaged or truncated: not a readable torch zip archive"
+    if objects:
         found = re.search(r"Unsupported global: GLOBAL ([\w.]+)", text)
         what = f", e.g. {found.group(1)}" if found else ""
         return (f"it holds Python objects{what}, not only tensors and plain data; respecd loads checkpoints "

@@ -20,6 +20,7 @@ from respecd.radar.chirp import UART_BYTES_PER_S, ChirpProfile
 
 Board = Literal["isk", "aop"]
 Firmware = Literal["xwr68xx_mmw_demo", "xwr64xx_mmw_demo", "xwr64xxAOP_mmw_demo"]
+MAX_CFG_BYTES = 256 * 1024  # TI's cfgs are 1-3 kB; a device or a FIFO is refused by this, not by memory
 REQUIRED = ("channelCfg", "profileCfg", "chirpCfg", "frameCfg")  # a base cfg must have these
 GENERATED = (*REQUIRED, "guiMonitor", "cfarFovCfg", "CQRxSatMonitor", "CQSigImgMonitor", "bpmCfg")
 OPEN_ONLY = ("channelCfg", "adcCfg", "lowPower")  # the demo applies these once per boot: never change them
@@ -53,7 +54,12 @@ def read_cfg(path: str | Path) -> list[str]:
     """A cfg file's command lines; InputError naming the file when it cannot be used."""
     path = Path(path)
     try:
-        lines = parse_lines(path.read_text(encoding="ascii"))
+        with path.open("rb") as handle:  # at most one byte past the limit: /dev/zero or a FIFO has no size
+            data = handle.read(MAX_CFG_BYTES + 1)
+        if len(data) > MAX_CFG_BYTES:
+            raise InputError(f"{path}: more than {MAX_CFG_BYTES} bytes, expected a cfg file of ASCII mmWave "
+                             "CLI commands (a few kB)")
+        lines = parse_lines(data.decode("ascii"))
     except FileNotFoundError as err:
         raise InputError(f"{path}: no such cfg file") from err
     except (OSError, UnicodeDecodeError) as err:

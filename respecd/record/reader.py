@@ -259,8 +259,11 @@ def open_log(path: str | Path, verify: bool = False, warn: bool = True) -> Sessi
     size = p.stat().st_size
     if size == 0:
         raise InputError(f"{p}: empty file (0 bytes), expected an MCAP session log")
-    with open(p, "rb") as f:
-        head = f.read(len(MAGIC))
+    try:
+        with open(p, "rb") as f:
+            head = f.read(len(MAGIC))
+    except OSError as err:  # a file we may not read (PermissionError), an I/O error
+        raise InputError(f"{p}: cannot read session log: {err.strerror or err}") from err
     if head != MAGIC:
         raise InputError(f"{p}: not an MCAP file (byte 0: {head[:8]!r}, expected the MCAP magic {MAGIC!r})")
     session = SessionLog(path=p, size=size, warn=warn)

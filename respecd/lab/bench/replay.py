@@ -45,6 +45,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     check_output_dir("--keep", args.keep)  # made below with its parents
     width, height = resolution(args.resolution, "--resolution")
+    _check_weights(args.weights)  # a bad file is exit 2 now, not after the recording phase
     with tempfile.TemporaryDirectory(prefix="respecd-bench-replay-") as scratch:
         work = Path(args.keep) if args.keep else Path(scratch)
         work.mkdir(parents=True, exist_ok=True)
@@ -151,6 +152,21 @@ async def _recording_overhead(
 
 
 # -- replay throughput --------------------------------------------------------------------
+def _check_weights(weights: str) -> None:
+    """ConfigError for a checkpoint that cannot be loaded; a built-in one that does not ship is fine
+    (``_profile`` takes an untrained net of the same shape)."""
+    from respecd.errors import ConfigError
+    from respecd.perception import checkpoint
+
+    try:
+        path = checkpoint.resolve(weights)
+    except ConfigError:
+        if weights.startswith("builtin:"):
+            return
+        raise
+    checkpoint.spec_of(str(path))
+
+
 def _profile(args: argparse.Namespace, size: tuple[int, int], work: Path) -> tuple[Any, str]:
     """sim-rover with RGB fixed at ``size``, policy static; untrained weights when none ship."""
     from respecd.config import load_profile
