@@ -194,3 +194,32 @@ def test_daemon_on_a_refusing_disk_runs_on_and_says_so(tmp_path: Path) -> None:
     statuses = [e["recording"] for e in events if e["event"] == "status"]
     assert statuses[-1]["state"] == "paused" and statuses[-1]["messages"] <= closed["messages"]
     structlog.reset_defaults()
+
+
+def test_a_segment_never_overwrites_an_existing_file(tmp_path: Path) -> None:
+    earlier = tmp_path / "rec-20261201T080000.mcap"  # an earlier session's file under this session's name
+    earlier.write_bytes(b"an earlier session")
+    segments = _writer(tmp_path)
+    with capture_logs() as logs:
+        assert segments.open(0.0) is None
+        for i in range(20):
+            segments.put(_message(i), i, i * 0.01)
+        segments.close()
+    assert earlier.read_bytes() == b"an earlier session"
+    assert segments.state == "paused" and "File exists" in (segments.reason or "") and segments.paths == []
+    paused = [e for e in logs if e["event"] == "record.paused"]
+    assert len(paused) == 1 and "MiB are free" not in paused[0]["resumes"]  # the disk is not to blame
+
+
+@pytest.mark.parametrize("existing", ["run.mcap", "run-001.mcap"])
+def test_the_daemon_refuses_a_recording_name_already_taken(tmp_path: Path, existing: str) -> None:
+    """`--record run.mcap` twice: the second run stops at start (exit 2) instead of overwriting the first,
+    also when only a later segment of an earlier session under that name is left."""
+    (tmp_path / existing).write_bytes(b"yesterday's session")
+    done = subprocess.run([sys.executable, "-m", "respecd.cli", "--duration", "5", "--record",
+                           str(tmp_path / "run.mcap"), "--state-dir", str(tmp_path / "state")],
+                          capture_output=True, text=True, timeout=60)
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert f"{tmp_path / existing} exists and a recording is never overwritten" in done.stderr
+    assert (tmp_path / existing).read_bytes() == b"yesterday's session"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [existing]  # nothing started: no state dir, no log

@@ -124,13 +124,21 @@ def recording_problem(template: str) -> str | None:
     profile's ``recording.path``: the file is named as the recorder names it (``{time}`` the UTC
     start, ``{index}`` 000; later segments go into the same folder) and its folders are made.
     Without this check the recorder pauses at the first write and the session goes unrecorded.
-    An existing file is not judged here (what the recorder does with it is its own rule)."""
+    A recording never overwrites another: any file of this session's names (the first, or a later
+    segment ``-NNN`` of an earlier session with the same name) already there is a problem too."""
     from datetime import datetime, timezone
 
-    from respecd.record.writer import segment_path
+    from respecd.record.storage import recordings
+    from respecd.record.writer import segment_path, session_stamp
 
-    first = segment_path(template, datetime.now(timezone.utc), 0)
+    now = datetime.now(timezone.utc)
+    first = segment_path(template, now, 0)
     problem = output_file_problem(first, make_parents=True, example="respecd-{time}.mcap")
+    session = session_stamp(now) if "{time}" in template else ""
+    taken = [r.path for r in recordings(template) if r.session == session]
+    if problem is None and taken:
+        problem = (f"{first}: {taken[0]} exists and a recording is never overwritten; move it away, or put "
+                   "{time} in the name for one file per session (e.g. run-{time}.mcap)")
     if problem and str(first) != template:  # name the template as given, then the file it makes now
         problem = f"{template} (now {first}){problem[len(str(first)):]}"
     return problem

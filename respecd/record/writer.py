@@ -38,10 +38,14 @@ MAX_RETRY_S = 300.0
 RESUME_MARGIN = 1.25  # resume above floor x this (+ a chunk): no pause/resume flapping at the floor
 
 
+def session_stamp(started: datetime) -> str:
+    """What ``{time}`` becomes in a session's file names: its UTC start to the second."""
+    return started.astimezone(timezone.utc).strftime("%Y%m%dT%H%M%S")
+
+
 def segment_path(template: str, started: datetime, index: int) -> Path:
     """The file name of segment ``index`` (0 first) of a session that started at ``started``."""
-    stamp = started.astimezone(timezone.utc).strftime("%Y%m%dT%H%M%S")
-    path = Path(template.replace("{time}", stamp).replace("{index}", f"{index:03d}"))
+    path = Path(template.replace("{time}", session_stamp(started)).replace("{index}", f"{index:03d}"))
     if index > 0 and "{index}" not in template:
         path = path.with_name(f"{path.stem}-{index:03d}{path.suffix}")
     return path
@@ -56,7 +60,8 @@ class _WholeWrites:
     """
 
     def __init__(self, path: Path) -> None:
-        self._raw = open(path, "wb", buffering=0)  # noqa: SIM115 - lives as long as the segment
+        # "x": never over an existing file, a session must not destroy an earlier one (FileExistsError pauses)
+        self._raw = open(path, "xb", buffering=0)  # noqa: SIM115 - lives as long as the segment
 
     def write(self, data: bytes | memoryview) -> int:
         view = memoryview(data)
@@ -274,9 +279,10 @@ class SegmentWriter:
                 pass
             self._finished_bytes += self._good
             self._good = 0
-        self._pause(f"{err.strerror or err} ({type(err).__name__})", error=True)
+        self._pause(f"{err.strerror or err} ({type(err).__name__})", error=True,
+                    space=err.errno in (errno.ENOSPC, errno.EDQUOT))
 
-    def _pause(self, reason: str, error: bool) -> None:
+    def _pause(self, reason: str, error: bool, space: bool = True) -> None:
         """One line per change of reason; retries back off while the same reason persists."""
         self._next_retry = self.monotonic() + self._retry_s
         if self.state == "paused" and self.reason == reason:
@@ -285,7 +291,8 @@ class SegmentWriter:
         self.state, self.reason = "paused", reason
         fields = {"path": str(self.paths[-1]) if self.paths else None, "reason": reason, "written": self.messages,
                   "written_mib": round(self.on_disk_bytes / MIB, 1), "lost": self.lost,
-                  "resumes": f"when {self._resume_at / MIB:.0f} MiB are free (checked every {self._retry_s:g}+ s)"}
+                  "resumes": f"when {self._resume_at / MIB:.0f} MiB are free (checked every {self._retry_s:g}+ s)"
+                  if space else f"if a retry succeeds (every {self._retry_s:g}+ s)"}
         if error:
             log.error("record.paused", **fields)
         else:

@@ -29,6 +29,9 @@ from typing import Any
 
 from respecd.cli.args import resolution
 from respecd.cli.outputs import check_output_dir
+from respecd.errors import InputError
+
+LOGS = ("rgb-only.mcap", "rover.mcap", "rover-zstd.mcap", "session.mcap")  # what --keep keeps
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -44,6 +47,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     check_output_dir("--keep", args.keep)  # made below with its parents
+    taken = [n for n in LOGS if args.keep and (Path(args.keep) / n).exists()]
+    if taken:  # recordings are never overwritten, not even this benchmark's own from an earlier run
+        raise InputError(f"--keep {args.keep}: {Path(args.keep) / taken[0]} exists; expected a folder without "
+                         f"{', '.join(LOGS)} (a new one, or remove them)")
     width, height = resolution(args.resolution, "--resolution")
     _check_weights(args.weights)  # a bad file is exit 2 now, not after the recording phase
     with tempfile.TemporaryDirectory(prefix="respecd-bench-replay-") as scratch:
