@@ -171,8 +171,10 @@ def test_false_boxes_are_split_into_second_misplaced_and_clutter() -> None:
 
 
 def test_eval_command_rejects_a_negative_world_seed(capsys) -> None:
-    assert cli_main(["eval", "--data", "sim", "--seed", "-1"]) == 2
-    assert "--seed -1: expected a world seed >= 0" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as stopped:  # argparse refuses it before the checkpoint loads
+        cli_main(["eval", "--data", "sim", "--seed", "-1"])
+    assert stopped.value.code == 2
+    assert "argument --seed: expected an integer >= 0, got '-1'" in capsys.readouterr().err
 
 
 def test_eval_command_rejects_a_bad_checkpoint(tmp_path: Path, capsys) -> None:

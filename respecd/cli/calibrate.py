@@ -15,6 +15,7 @@ import json
 import sys
 from pathlib import Path
 
+from respecd.cli.args import non_negative_int, positive_int
 from respecd.cli.outputs import check_output_file
 from respecd.errors import InputError
 
@@ -23,13 +24,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weights", required=True, help="checkpoint to calibrate: a path or builtin:NAME")
     parser.add_argument("--out", required=True, type=Path,
                         help="calibrated checkpoint to write (may be --weights' own file); its card goes beside it")
-    parser.add_argument("--seed", type=int, default=2_000_003,
+    parser.add_argument("--seed", type=non_negative_int, default=2_000_003,
                         help="world seed of the simulated scenes the map is fitted on (default 2000003, a "
                              "validation world: neither training nor respecd eval's default uses it)")
-    parser.add_argument("--check-seed", type=int, default=None,
+    parser.add_argument("--check-seed", type=non_negative_int, default=None,
                         help="also score the map on this world (e.g. 3000003); nothing is fitted there")
     parser.add_argument("--frames", type=int, default=40, help="instants per scenario (default 40)")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads, at least 1 (default 1)")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures as JSON")
     parser.add_argument("--no-progress", dest="quiet", action="store_true", help="no progress bars")
 
@@ -44,9 +45,6 @@ def main(args: argparse.Namespace) -> int:
     from respecd.perception.config import PerceptionConfig
     from respecd.perception.detector import FusionDetector
 
-    for flag, seed in (("--seed", args.seed), ("--check-seed", args.check_seed)):
-        if seed is not None and seed < 0:
-            raise InputError(f"{flag} {seed}: expected a world seed >= 0")
     if args.frames < 2:
         raise InputError(f"--frames {args.frames}: expected at least 2 instants per scenario")
     torch.set_num_threads(args.threads)

@@ -20,7 +20,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from respecd.cli.args import resolution
+from respecd.cli.args import non_negative_int, positive_float, positive_int, resolution, unit_interval
 from respecd.cli.outputs import check_output_dir
 from respecd.errors import InputError
 
@@ -34,23 +34,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="checkpoint path, builtin:NAME, or a Darknet .weights file (imported untrained)")
     parser.add_argument("--out", type=Path, default=Path("out/eval"),
                         help="folder for eval.md, contributions.png, eval.json")
-    parser.add_argument("--frames", type=int, default=40, help="sim: instants per scenario (default 40)")
-    parser.add_argument("--seed", type=int, default=None,
+    parser.add_argument("--frames", type=positive_int, default=40,
+                        help="sim: instants per scenario, at least 1 (default 40)")
+    parser.add_argument("--seed", type=non_negative_int, default=None,
                         help="sim: world seed of the held-out scenes (default 1000003; training uses 0)")
     parser.add_argument("--rgb", default="640x360",
                         help="sim: RGB size WxH of the ablation, contributions and deletion test (default 640x360)")
     parser.add_argument("--method", choices=("ablation", "gradient"), default=None,
                         help="contribution method (default: the profile's, ablation)")
-    parser.add_argument("--attribution-threshold", type=float, default=None,
-                        help="confidence a detection needs to be attributed (default: the daemon's, 0.25)")
-    parser.add_argument("--scale", type=float, default=0.5,
-                        help="folder data: image scale (default 0.5: LLVIP's 1280x1024 -> 640x512)")
+    parser.add_argument("--attribution-threshold", type=unit_interval, default=None,
+                        help="confidence 0..1 a detection needs to be attributed (default: the daemon's, 0.25)")
+    parser.add_argument("--scale", type=positive_float, default=0.5,
+                        help="folder data: image scale > 0 (default 0.5: LLVIP's 1280x1024 -> 640x512)")
     parser.add_argument("--split", choices=("auto", "all", "train", "val"), default="auto",
                         help="folder data: which images (auto: the val split if the folder has one, else all)")
     parser.add_argument("--modality", choices=("auto", "rgb", "thermal"), default="auto",
                         help="folder data of one modality: which (auto: single-channel images are thermal)")
     # 1 thread: on a 2-core box shared with other work, two spin-waiting threads ran up to 10x slower
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads, at least 1 (default 1)")
     parser.add_argument("--no-progress", "--quiet", dest="quiet", action="store_true",
                         help="no progress bars (--quiet is the old name)")
     parser.add_argument("--card", action="store_true",
@@ -65,9 +66,7 @@ def main(args: argparse.Namespace) -> int:
     from respecd.lab.detector.evaluate import EVAL_SEED, OPERATING_THRESHOLD, evaluate_samples, evaluate_sim
     from respecd.perception.config import PerceptionConfig
 
-    seed = EVAL_SEED if args.seed is None else args.seed
-    if seed < 0:  # checked before the checkpoint loads: bad input fails at once
-        raise InputError(f"--seed {seed}: expected a world seed >= 0")
+    seed = EVAL_SEED if args.seed is None else args.seed  # --seed >= 0: checked by its argparse type
     torch.set_num_threads(args.threads)
     pcfg = PerceptionConfig(weights=args.weights, score_threshold=EVAL_SCORE_THRESHOLD)
     if args.method:

@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from respecd.cli.args import non_negative_int
 from respecd.control.qlearning import block_spans, updates_per_state
 
 
@@ -21,7 +22,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="policy_command", metavar="VERB", required=True)
     show = sub.add_parser("show", help="print the learned policy of a Q-table file")
     show.add_argument("file", type=Path, help="Q-table (.npz) from the state directory")
-    show.add_argument("--limit", type=int, default=40, help="rows to print (default 40; 0 = every visited state)")
+    show.add_argument("--limit", type=non_negative_int, default=40,
+                      help="rows to print (default 40; 0 = every visited state)")
     show.add_argument("--sort", choices=("visits", "state", "q"), default="visits", help="row order (default visits)")
 
 

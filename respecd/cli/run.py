@@ -10,6 +10,7 @@ from typing import Any
 
 import structlog
 
+from respecd.cli.args import non_negative_int, positive_float
 from respecd.config import DEFAULT_PROFILE, read_profile
 from respecd.errors import ConfigError, InputError
 
@@ -26,7 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         metavar="FILE",
         help=f"profile YAML (default: the embedded {DEFAULT_PROFILE}, a simulated rover); --config is the old name",
     )
-    parser.add_argument("--duration", type=float, metavar="S", help="stop after S seconds (default: run until SIGTERM)")
+    parser.add_argument("--duration", type=positive_float, metavar="S",
+                        help="stop after S seconds, S > 0 (default: run until SIGTERM)")
     parser.add_argument(
         "--log-format",
         choices=("json", "console", "auto"),
@@ -37,7 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-v", "--verbose", action="store_true",
                         help="debug level, and on a terminal also the per-decision and per-apply lines")
     parser.add_argument(
-        "--seed", type=int, help="seed for the simulator and the controller (default: the profile's, else 0)"
+        "--seed", type=non_negative_int,
+        help="seed >= 0 for the simulator and the controller (default: the profile's, else 0)"
     )
     parser.add_argument("--policy", choices=POLICIES, help="override controller.policy from the profile")
     parser.add_argument(

@@ -13,6 +13,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
+from respecd.cli.args import non_negative_int, positive_float, positive_int, unit_interval
 from respecd.cli.outputs import check_output_file
 from respecd.errors import InputError
 
@@ -24,47 +25,51 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", required=True,
                         help="'sim' (simulated rover) or a folder: LLVIP/VOC pairs, COCO json or YOLO txt")
     parser.add_argument("--out", required=True, type=Path, help="checkpoint to write (.pt); the card goes beside it")
-    parser.add_argument("--epochs", type=int, default=10,
+    parser.add_argument("--epochs", type=non_negative_int, default=10,
                         help="epochs of --steps steps each (default 10; 0 with --init: import, no training)")
-    parser.add_argument("--batch", type=int, default=None,
+    parser.add_argument("--batch", type=positive_int, default=None,
                         help="sim: strips per step at 640x360, fewer at larger sizes (default 10); "
                              "folder data: crops per step (default 16)")
-    parser.add_argument("--lr", type=float, default=2e-3, help="AdamW peak learning rate (default 0.002)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the simulated world and the augmentation")
-    parser.add_argument("--steps", type=int, default=100,
+    parser.add_argument("--lr", type=positive_float, default=2e-3, help="AdamW peak learning rate > 0 (default 0.002)")
+    parser.add_argument("--seed", type=non_negative_int, default=0,
+                        help="seed >= 0 of the simulated world and the augmentation")
+    parser.add_argument("--steps", type=non_negative_int, default=100,
                         help="steps per epoch (0: one pass over the pool; default 100)")
     # 1 thread: on a 2-core box shared with other work, two spin-waiting threads ran 3x slower per step
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads, at least 1 (default 1)")
     parser.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
                         help="bf16: forward and backward under CPU autocast (about 1.5x faster per step where the CPU "
                              "has AVX512-BF16 or AMX, slower where not); weights and loss stay fp32 (default fp32)")
-    parser.add_argument("--eval-frames", type=int, default=10,
+    parser.add_argument("--eval-frames", type=non_negative_int, default=10,
                         help="sim: held-out instants per scenario evaluated for the model card (0: skip; default 10)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT.resume if present")
     parser.add_argument("--init", help="start from this checkpoint (path or builtin:NAME) or Darknet .weights file "
                         "(RGB.weights,AUX.weights: backbone 2 from another Darknet model)")
     parser.add_argument("--aux", default="thermal,radar",
                         help="non-RGB modalities of a new net, in order (default thermal,radar)")
-    parser.add_argument("--aux-scale", type=float, default=1.0,
+    parser.add_argument("--aux-scale", type=positive_float, default=1.0,
                         help="Darknet nets: backbone 2 sees the aux planes at this scale (default 1.0)")
     parser.add_argument("--freeze", default="",
                         help="comma-separated parts kept fixed, e.g. rgb,head,fuse or fuse.*.rgb")
-    parser.add_argument("--patience", type=int, default=0,
+    parser.add_argument("--patience", type=non_negative_int, default=0,
                         help="folder data: stop after N epochs without a better validation mAP@0.5 (0: never)")
     parser.add_argument("--modality", choices=("auto", "rgb", "thermal"), default="auto",
                         help="folder data of one modality: which (auto: single-channel images are thermal)")
-    parser.add_argument("--scale", type=float, default=0.5, help="folder data: decode images at this scale")
-    parser.add_argument("--val-limit", type=int, default=300,
-                        help="folder data: validation images scored per epoch, evenly spaced (default 300)")
-    parser.add_argument("--val-scale", type=float, help="folder data: validation image scale (default --scale)")
+    parser.add_argument("--scale", type=positive_float, default=0.5,
+                        help="folder data: decode images at this scale > 0 (default 0.5)")
+    parser.add_argument("--val-limit", type=positive_int, default=300,
+                        help="folder data: validation images scored per epoch, evenly spaced, at least 1 "
+                             "(default 300)")
+    parser.add_argument("--val-scale", type=positive_float,
+                        help="folder data: validation image scale > 0 (default --scale)")
     parser.add_argument("--crop", default="256x160", help="training crop WxH, multiples of 32 (default 256x160)")
     parser.add_argument("--zoom", default="0.6,2.0", help="training zoom range LO,HI of the decoded image")
     parser.add_argument("--strip-zoom", action="append", metavar="[WxH=]LO,HI",
                         help="sim: zoom range LO,HI of the full-height training strips (default 0.8,1.25); "
                              "WxH=LO,HI sets one RGB size's range (repeat the flag for several)")
-    parser.add_argument("--keep-cut", type=float, default=0.9,
-                        help="a box a training window cuts to less than this share of its area is ignored, not a "
-                             "positive (default 0.9)")
+    parser.add_argument("--keep-cut", type=unit_interval, default=0.9,
+                        help="a box a training window cuts to less than this share 0..1 of its area is ignored, "
+                             "not a positive (default 0.9)")
     parser.add_argument("--radar-alone", type=float, default=0.12,
                         help="modality dropout: weight of 'radar only' among the kept-sensor subsets (default 0.12)")
     parser.add_argument("--scenario-weight", default="", metavar="NAME=W,...",
@@ -74,8 +79,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sim-mix", type=float, default=0.0, metavar="P",
                         help="folder data: draw this share of steps from the simulator instead, 0 <= P < 1 "
                              "(default 0: the folder only)")
-    parser.add_argument("--pseudo-rgb", type=float, default=0.0,
-                        help="thermal-only data: share of crops whose RGB shows the thermal image (default 0)")
+    parser.add_argument("--pseudo-rgb", type=unit_interval, default=0.0,
+                        help="thermal-only data: share 0..1 of crops whose RGB shows the thermal image (default 0)")
     parser.add_argument("--curve", type=Path, metavar="PNG",
                         help="training curve: loss per epoch and the held-out mAP (default: OUT with -curve.png)")
     parser.add_argument("--no-progress", "--quiet", dest="quiet", action="store_true",

@@ -8,6 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from respecd.cli.args import non_negative_int, positive_float, positive_int
 from respecd.cli.outputs import check_output_dir, check_output_file
 from respecd.errors import InputError
 
@@ -18,21 +19,25 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--episodes", type=int, default=40,
                         help="episodes of the seven scenarios (the paper's six, then behind-curtain; default 40)")
     parser.add_argument("--seeds", type=int, default=4, help="training world seeds 0..N-1 (default 4)")
-    parser.add_argument("--min-s", type=float, default=10.0, help="shortest scenario run in an episode (s)")
-    parser.add_argument("--max-s", type=float, default=30.0, help="longest scenario run in an episode (s)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the episode order, durations and world seeds")
-    parser.add_argument("--samples-per-s", type=float, default=1.0, help="detector outcomes per scenario second")
+    parser.add_argument("--min-s", type=positive_float, default=10.0, help="shortest scenario run in an episode (s)")
+    parser.add_argument("--max-s", type=positive_float, default=30.0, help="longest scenario run in an episode (s)")
+    parser.add_argument("--seed", type=non_negative_int, default=0,
+                        help="seed >= 0 of the episode order, durations and world seeds")
+    parser.add_argument("--samples-per-s", type=positive_float, default=1.0,
+                        help="detector outcomes per scenario second (> 0)")
     parser.add_argument("--state-dir", help="state directory (default: $STATE_DIRECTORY, else $XDG_STATE_HOME/respecd, "
                         "else ~/.local/state/respecd)")
     parser.add_argument("--out", type=Path, help="table file (default: the profile's table in the state directory)")
     parser.add_argument("--curve", type=Path, help="learning-curve PNG (default: beside the table)")
     parser.add_argument("--resume", action="store_true", help="continue from the table at --out if it matches")
-    parser.add_argument("--max-minutes", type=float, help="stop after this many minutes (the table is saved)")
+    parser.add_argument("--max-minutes", type=positive_float,
+                        help="stop after this many minutes, > 0 (the table is saved)")
     parser.add_argument("--no-cache", action="store_true", help="keep detector outcomes in memory only")
     parser.add_argument("--cache-dir", type=Path, help="outcome cache folder (default $XDG_CACHE_HOME/respecd)")
     parser.add_argument("--random-detector", action="store_true",
                         help="randomly initialised detector instead of the checkpoint (smoke tests only)")
-    parser.add_argument("--latency-repeats", type=int, default=3, help="timed calls per resolution (median)")
+    parser.add_argument("--latency-repeats", type=positive_int, default=3,
+                        help="timed calls per resolution (median; at least 1)")
     parser.add_argument("--latency", type=Path, metavar="FILE",
                         help="use the detector latency of a `bench scenarios --json` result instead of measuring "
                              "it (the compute and latency terms of the reward, and the load factor, then repeat)")
@@ -46,8 +51,6 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError("--episodes and --seeds: expected at least 1")
     if not 0 < args.min_s <= args.max_s:
         raise InputError(f"--min-s/--max-s: expected 0 < min <= max, got {args.min_s}, {args.max_s}")
-    if args.samples_per_s <= 0:
-        raise InputError("--samples-per-s: expected a positive number")
 
 
 def _check_outputs(args: argparse.Namespace) -> None:

@@ -15,16 +15,34 @@ from typing import Any
 
 import numpy as np
 
+from respecd.cli.args import non_negative_int, positive_int
+from respecd.sensors import MAX_RATE_HZ, MIN_RATE_HZ
+
+
+def rate_levels(text: str) -> tuple[float, ...]:
+    """An argparse type: '1,10,30' -> (1.0, 10.0, 30.0), each within the rates a sensor may run
+    (the profile's own check, which a model_copy override would skip)."""
+    try:
+        levels = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        levels = ()
+    if not levels or not all(MIN_RATE_HZ <= r <= MAX_RATE_HZ for r in levels):
+        raise argparse.ArgumentTypeError(
+            f"expected comma-separated rates from {MIN_RATE_HZ:g} to {MAX_RATE_HZ:g} Hz, got {text!r}")
+    return levels
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", default="builtin:sim-rover", help="profile whose sensors define the spaces")
-    parser.add_argument("--steps", type=int, default=20000, help="decision steps to time (default 20000)")
+    parser.add_argument("--steps", type=positive_int, default=20000, help="decision steps to time (default 20000)")
     parser.add_argument("--policy", choices=("learn", "exploit", "static", "heuristic"), default="learn")
     parser.add_argument("--mode", choices=("moves", "product", "factored"), default=None,
                         help="override the action mode")
-    parser.add_argument("--percepts", type=int, default=2000, help="percepts for the feature/state timing")
-    parser.add_argument("--rate-levels", default=None, help="override the rate levels, e.g. 1,10,30 (Hz)")
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--percepts", type=positive_int, default=2000,
+                        help="percepts for the feature/state timing (rounded to tens, at least 10; default 2000)")
+    parser.add_argument("--rate-levels", type=rate_levels, default=None,
+                        help=f"override the rate levels, e.g. 1,10,30 (Hz, each {MIN_RATE_HZ:g}..{MAX_RATE_HZ:g})")
+    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed >= 0 (default 0)")
 
 
 def _percentiles(ns: list[int]) -> tuple[float, float, float]:
@@ -85,7 +103,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.mode:
         actions["mode"] = args.mode
     if args.rate_levels:
-        actions["rate_levels_hz"] = tuple(float(x) for x in args.rate_levels.split(","))
+        actions["rate_levels_hz"] = args.rate_levels
     if actions:
         update["actions"] = profile.controller.actions.model_copy(update=actions)
     config = profile.controller.model_copy(update=update)

@@ -18,14 +18,17 @@ import statistics
 import time
 from typing import Any
 
+from respecd.cli.args import non_negative_int, positive_int
+
 RESOLUTIONS = ((1280, 720), (960, 540), (640, 360))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weights", default="builtin:sim-rover", help="checkpoint (default the shipped one)")
-    parser.add_argument("--repeats", type=int, default=10, help="timed runs per resolution (default 10)")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (default: the profile default)")
-    parser.add_argument("--seed", type=int, default=1, help="world seed of the scene used as input")
+    parser.add_argument("--repeats", type=positive_int, default=10, help="timed runs per resolution (default 10)")
+    parser.add_argument("--threads", type=non_negative_int, default=0,
+                        help="torch threads (default 0: the profile default)")
+    parser.add_argument("--seed", type=non_negative_int, default=1, help="world seed >= 0 of the scene used as input")
 
 
 def _median_ms(fn, repeats: int) -> tuple[float, float]:

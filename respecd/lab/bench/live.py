@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from respecd.cli.args import MAX_PORT, non_negative_float, port_number, positive_float
 from respecd.lab.bench.pipeline import timed_run
 
 CLIENT = r"""
@@ -54,10 +55,25 @@ asyncio.run(main())
 """
 
 
+def first_port(text: str) -> int:
+    """An argparse type: the fast client's port; the slow client's run uses the next one, so both must exist."""
+    try:
+        port = port_number(text)
+    except argparse.ArgumentTypeError:
+        port = 0
+    if not 1 <= port < MAX_PORT:
+        raise argparse.ArgumentTypeError(f"expected a port from 1 to {MAX_PORT - 1} (the slow-client run uses "
+                                         f"PORT + 1), got {text!r}")
+    return port
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--seconds", type=float, default=15.0, help="length of each run (default 15 s)")
-    parser.add_argument("--slow-read-s", type=float, default=0.5, help="the slow client's pause per message (s)")
-    parser.add_argument("--port", type=int, default=28871, help="port of the live view")
+    parser.add_argument("--seconds", type=positive_float, default=15.0, help="length of each run (default 15 s)")
+    parser.add_argument("--slow-read-s", type=non_negative_float, default=0.5,
+                        help="the slow client's pause per message (s, default 0.5)")
+    parser.add_argument("--port", type=first_port, default=28871,
+                        help=f"port of the live view, 1..{MAX_PORT - 1}; the slow-client run uses PORT + 1 "
+                             "(default 28871)")
 
 
 def _profile() -> Any:

@@ -27,7 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from respecd.cli.args import resolution
+from respecd.cli.args import positive_float, resolution
 from respecd.errors import InputError
 from respecd.lab.bench import peer_radar, peer_sync
 from respecd.lab.bench.drivers import DEFAULT_DATA
@@ -39,7 +39,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA, help="folder of the real radar captures")
     parser.add_argument("--repeat", type=int, default=10, help="passes over the capture per timed round")
     parser.add_argument("--rounds", type=int, default=3, help="timed rounds; the best one is reported")
-    parser.add_argument("--sync-seconds", type=float, default=60.0, help="length of the synchronizer's stream (s)")
+    parser.add_argument("--sync-seconds", type=positive_float, default=60.0,
+                        help="length of the synchronizer's stream (s)")
     parser.add_argument("--resolution", default="640x360", help="detector RGB input WxH (default 640x360)")
     parser.add_argument("--detector-repeats", type=int, default=10, help="timed forwards per detector (median)")
     parser.add_argument("--weights", default="builtin:sim-rover", help="our detector's checkpoint")

@@ -14,11 +14,13 @@ from typing import Any
 
 import numpy as np
 
+from respecd.cli.args import positive_float
+
 LAG_PROBE_PERIOD_S = 0.005
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--seconds", type=float, default=20.0, help="how long to run (default 20 s)")
+    parser.add_argument("--seconds", type=positive_float, default=20.0, help="how long to run (default 20 s)")
     parser.add_argument("--config", default="builtin:sim-rover", help="profile to run (its sensors forced to 30 Hz)")
     parser.add_argument(
         "--with-perception", action="store_true", help="also run the detector (default: core pipeline only)"

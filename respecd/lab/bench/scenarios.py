@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from respecd.cli.args import non_negative_int, positive_float, positive_int
 from respecd.cli.outputs import check_output_dir, check_output_file
 
 QUICK_DURATION_S = 4.0
@@ -24,9 +25,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weights", help="detector checkpoint (default: the profile's perception.weights)")
     parser.add_argument("--table", type=Path, help="Q-table for the rl policy (default: the shipped table)")
     parser.add_argument("--quick", action="store_true", help=f"CI size: {QUICK_DURATION_S:g} s per scenario")
-    parser.add_argument("--duration", type=float, help="seconds per scenario (default: the profile's, 30)")
-    parser.add_argument("--samples-per-s", type=float, default=1.0, help="detector outcomes scored per second")
-    parser.add_argument("--seed", type=int, help="first world seed (default 1000: held out from training)")
+    parser.add_argument("--duration", type=positive_float, help="seconds per scenario (default: the profile's, 30)")
+    parser.add_argument("--samples-per-s", type=positive_float, default=1.0,
+                        help="detector outcomes scored per second (> 0, default 1)")
+    parser.add_argument("--seed", type=non_negative_int,
+                        help="first world seed, >= 0 (default 1000: held out from training)")
     parser.add_argument("--worlds", type=int, default=1, metavar="N",
                         help="sets of worlds (one world per scenario each, seeds SEED .. SEED + N x scenarios - 1): "
                              "figures pooled over the sets, with their spread (default 1)")
@@ -37,7 +40,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--cache-dir", type=Path, help="outcome cache folder (default $XDG_CACHE_HOME/respecd)")
     parser.add_argument("--random-detector", action="store_true",
                         help="randomly initialised detector instead of the checkpoint (smoke tests only)")
-    parser.add_argument("--latency-repeats", type=int, help="timed calls per resolution (default 5, quick 2)")
+    parser.add_argument("--latency-repeats", type=positive_int,
+                        help="timed calls per resolution, at least 1 (default 5, quick 2)")
     parser.add_argument("--latency-clock", choices=("wall", "cpu"), default="wall",
                         help="time the detector calls in wall time (default) or in the process's CPU time "
                              "(a shared, busy machine: what one quiet core would take, without the waits)")

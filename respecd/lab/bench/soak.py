@@ -21,15 +21,16 @@ from typing import Any
 
 import numpy as np
 
+from respecd.cli.args import non_negative_float, positive_float
 from respecd.cli.outputs import check_output_dir
 
 MEDIAN_WINDOW_S = 120.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--minutes", type=float, default=10.0, help="how long to run (default 10)")
-    parser.add_argument("--every", type=float, default=10.0, metavar="S", help="seconds between samples (10)")
-    parser.add_argument("--warmup-min", type=float, metavar="M",
+    parser.add_argument("--minutes", type=positive_float, default=10.0, help="how long to run (default 10)")
+    parser.add_argument("--every", type=positive_float, default=10.0, metavar="S", help="seconds between samples (10)")
+    parser.add_argument("--warmup-min", type=non_negative_float, metavar="M",
                         help="minutes left out of the slope (default: a third of the run, at most 10)")
     parser.add_argument("--config", default="builtin:sim-rover", help="profile to run (default: the simulated rover)")
     parser.add_argument("--record", metavar="DIR", help="also record into DIR (1 GiB cap, oldest files deleted)")

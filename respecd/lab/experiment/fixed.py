@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from respecd.cli.args import resolution
+from respecd.cli.args import positive_float, resolution
 from respecd.errors import InputError
 from respecd.lab.detector.metrics import ImageResult, average_precision
 from respecd.messages import SensorConfig
@@ -128,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=seed_list, required=True,
                         help="world seeds (validation worlds: 500 + 7k + the scenario's index in the profile)")
     parser.add_argument("--profile", default="builtin:sim-rover")
-    parser.add_argument("--duration", type=float, default=20.0, help="seconds a world (default 20)")
+    parser.add_argument("--duration", type=positive_float, default=20.0, help="seconds a world (default 20)")
     parser.add_argument("--per-s", type=int, default=3, choices=range(1, 11), metavar="1..10",
                         help="instants scored a second (default 3)")
     parser.add_argument("--cache-dir", type=Path)

@@ -138,14 +138,17 @@ def write_reference(out: Path, profile_ref: str = "builtin:sim-rover", weights: 
 if __name__ == "__main__":
     import argparse
 
+    from respecd.cli.args import non_negative_int, positive_int
+
     parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.latency",
                                      description=write_reference.__doc__)
     parser.add_argument("out", type=Path)
     parser.add_argument("--profile", default="builtin:sim-rover")
     parser.add_argument("--weights")
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--repeats", type=positive_int, default=5, help="timed calls per resolution (default 5)")
     parser.add_argument("--clock", choices=sorted(CLOCKS), default="cpu")
-    parser.add_argument("--seed", type=int, default=500, help="world seed of the frames (default 500: validation)")
+    parser.add_argument("--seed", type=non_negative_int, default=500,
+                        help="world seed of the frames (default 500: validation)")
     a = parser.parse_args()
     from respecd.cli.outputs import check_output_file
     from respecd.errors import ConfigError, InputError, report

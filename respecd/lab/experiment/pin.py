@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from respecd.cli.args import positive_float
 from respecd.control.qlearning import FactoredQTable, block_spans
 from respecd.errors import ConfigError, InputError, report
 from respecd.lab.detector.metrics import average_precision
@@ -124,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--profile", default="builtin:sim-rover", help="the profile whose reward the terms follow")
     parser.add_argument("--latency", type=Path, required=True,
                         help="pinned detector latency (docs/reference-latency.json)")
-    parser.add_argument("--duration", type=float, default=20.0, help="seconds a world (default 20)")
+    parser.add_argument("--duration", type=positive_float, default=20.0, help="seconds a world (default 20)")
     parser.add_argument("--cache-dir", type=Path)
     parser.add_argument("--random-detector", action="store_true", help="an untrained net (smoke tests only)")
     parser.add_argument("--json", type=Path, help="write the figures here too")

@@ -15,6 +15,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
+from respecd.cli.args import non_negative_int, positive_float, positive_int, unit_interval
 from respecd.lab.detector.metrics import ImageResult, average_precision
 from respecd.messages import conf_agg
 
@@ -74,17 +75,6 @@ def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, la
     return results
 
 
-def unit_interval(text: str) -> float:
-    """An argparse type: a number in [0, 1] (a bad one exits 2 with the value and the range)."""
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}") from None
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {value}")
-    return value
-
-
 if __name__ == "__main__":
     import json
     import sys
@@ -94,9 +84,9 @@ if __name__ == "__main__":
 
     parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.probe", description=probe.__doc__)
     parser.add_argument("--profile", default="builtin:sim-rover")
-    parser.add_argument("--seed", type=int, default=500, help="first world seed (default 500: validation)")
-    parser.add_argument("--worlds", type=int, default=3)
-    parser.add_argument("--duration", type=float, default=20.0)
+    parser.add_argument("--seed", type=non_negative_int, default=500, help="first world seed (default 500: validation)")
+    parser.add_argument("--worlds", type=positive_int, default=3, help="sets of worlds, at least 1 (default 3)")
+    parser.add_argument("--duration", type=positive_float, default=20.0, help="seconds a world (default 20)")
     parser.add_argument("--latency", type=Path, required=True, help="a pinned latency file")
     parser.add_argument("--cache-dir", type=Path)
     parser.add_argument("--json", type=Path, help="write the table here too")
