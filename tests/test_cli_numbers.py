@@ -22,6 +22,7 @@ from respecd.cli.args import (
     port_number,
     positive_float,
     positive_int,
+    seed,
     unit_interval,
 )
 from respecd.lab.bench.controller import rate_levels
@@ -44,6 +45,7 @@ BAD: list[tuple[str, list[str], str]] = [
     (CLI, ["--duration", "nan", "--state-dir", T], "--duration"),
     (CLI, ["--duration", "inf", "--state-dir", T], "--duration"),
     (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--seed", "-1"], "--seed"),
+    (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--seed", str(2**64)], "--seed"),  # torch overflowed
     (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--threads", "0"], "--threads"),
     (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--lr", "-1"], "--lr"),
     (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--lr", "nan"], "--lr"),
@@ -112,6 +114,7 @@ def _refused(parse: Callable[[str], object], text: str) -> bool:
 
 @pytest.mark.parametrize(("parse", "good", "bad"), [
     (non_negative_int, {"0": 0, "7": 7, "2000003": 2000003}, ["-1", "1.5", "", "x", "nan"]),
+    (seed, {"0": 0, "7000": 7000, str(2**63 - 1): 2**63 - 1}, ["-1", str(2**63), str(2**64), "1.5", "x"]),
     (positive_int, {"1": 1, "40": 40}, ["0", "-3", "2.0", "inf"]),
     (port_number, {"1": 1, "8765": 8765, "65535": 65535}, ["0", "-1", "65536", "99999", "http"]),
     (first_port, {"1": 1, "28871": 28871, "65534": 65534}, ["0", "65535", "99999"]),

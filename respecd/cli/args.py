@@ -15,6 +15,7 @@ import math
 from respecd.errors import InputError
 
 MAX_PORT = 65535
+MAX_SEED = 2**63 - 1
 
 
 def resolution(text: str, flag: str) -> tuple[int, int]:
@@ -52,8 +53,14 @@ def _number(text: str, expected: str) -> float:
 
 
 def non_negative_int(text: str) -> int:
-    """An int >= 0: seeds (numpy refuses negative ones), counts where 0 means 'none' or 'all'."""
+    """An int >= 0: counts where 0 means 'none' or 'all'."""
     return _integer(text, 0)
+
+
+def seed(text: str) -> int:
+    """A random seed 0..2**63-1: numpy refuses negative ones, torch.manual_seed overflows past 64 bits
+    (and the tools add world offsets to a seed)."""
+    return _integer(text, 0, MAX_SEED)
 
 
 def positive_int(text: str) -> int:

@@ -15,7 +15,7 @@ import json
 import sys
 from pathlib import Path
 
-from respecd.cli.args import non_negative_int, positive_int
+from respecd.cli.args import non_negative_int, positive_int, seed
 from respecd.cli.outputs import check_output_file
 from respecd.errors import InputError
 
@@ -24,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weights", required=True, help="checkpoint to calibrate: a path or builtin:NAME")
     parser.add_argument("--out", required=True, type=Path,
                         help="calibrated checkpoint to write (may be --weights' own file); its card goes beside it")
-    parser.add_argument("--seed", type=non_negative_int, default=2_000_003,
+    parser.add_argument("--seed", type=seed, default=2_000_003,
                         help="world seed of the simulated scenes the map is fitted on (default 2000003, a "
                              "validation world: neither training nor respecd eval's default uses it)")
     parser.add_argument("--check-seed", type=non_negative_int, default=None,

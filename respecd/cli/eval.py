@@ -20,7 +20,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from respecd.cli.args import non_negative_int, positive_float, positive_int, resolution, unit_interval
+from respecd.cli.args import positive_float, positive_int, resolution, seed, unit_interval
 from respecd.cli.outputs import check_output_dir
 from respecd.errors import InputError
 
@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folder for eval.md, contributions.png, eval.json")
     parser.add_argument("--frames", type=positive_int, default=40,
                         help="sim: instants per scenario, at least 1 (default 40)")
-    parser.add_argument("--seed", type=non_negative_int, default=None,
+    parser.add_argument("--seed", type=seed, default=None,
                         help="sim: world seed of the held-out scenes (default 1000003; training uses 0)")
     parser.add_argument("--rgb", default="640x360",
                         help="sim: RGB size WxH of the ablation, contributions and deletion test (default 640x360)")

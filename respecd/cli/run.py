@@ -10,7 +10,7 @@ from typing import Any
 
 import structlog
 
-from respecd.cli.args import non_negative_int, positive_float
+from respecd.cli.args import positive_float, seed
 from respecd.config import DEFAULT_PROFILE, read_profile
 from respecd.errors import ConfigError, InputError
 
@@ -39,7 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("-v", "--verbose", action="store_true",
                         help="debug level, and on a terminal also the per-decision and per-apply lines")
     parser.add_argument(
-        "--seed", type=non_negative_int,
+        "--seed", type=seed,
         help="seed >= 0 for the simulator and the controller (default: the profile's, else 0)"
     )
     parser.add_argument("--policy", choices=POLICIES, help="override controller.policy from the profile")

@@ -13,7 +13,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
-from respecd.cli.args import non_negative_int, positive_float, positive_int, unit_interval
+from respecd.cli.args import non_negative_int, positive_float, positive_int, seed, unit_interval
 from respecd.cli.outputs import check_output_file
 from respecd.errors import InputError
 
@@ -31,7 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="sim: strips per step at 640x360, fewer at larger sizes (default 10); "
                              "folder data: crops per step (default 16)")
     parser.add_argument("--lr", type=positive_float, default=2e-3, help="AdamW peak learning rate > 0 (default 0.002)")
-    parser.add_argument("--seed", type=non_negative_int, default=0,
+    parser.add_argument("--seed", type=seed, default=0,
                         help="seed >= 0 of the simulated world and the augmentation")
     parser.add_argument("--steps", type=non_negative_int, default=100,
                         help="steps per epoch (0: one pass over the pool; default 100)")

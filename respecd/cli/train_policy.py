@@ -8,7 +8,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from respecd.cli.args import non_negative_int, positive_float, positive_int
+from respecd.cli.args import positive_float, positive_int, seed
 from respecd.cli.outputs import check_output_dir, check_output_file
 from respecd.errors import InputError
 
@@ -21,7 +21,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=int, default=4, help="training world seeds 0..N-1 (default 4)")
     parser.add_argument("--min-s", type=positive_float, default=10.0, help="shortest scenario run in an episode (s)")
     parser.add_argument("--max-s", type=positive_float, default=30.0, help="longest scenario run in an episode (s)")
-    parser.add_argument("--seed", type=non_negative_int, default=0,
+    parser.add_argument("--seed", type=seed, default=0,
                         help="seed >= 0 of the episode order, durations and world seeds")
     parser.add_argument("--samples-per-s", type=positive_float, default=1.0,
                         help="detector outcomes per scenario second (> 0)")

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from respecd.cli.args import non_negative_int, positive_int
+from respecd.cli.args import positive_int, seed
 from respecd.sensors import MAX_RATE_HZ, MIN_RATE_HZ
 
 
@@ -42,7 +42,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="percepts for the feature/state timing (rounded to tens, at least 10; default 2000)")
     parser.add_argument("--rate-levels", type=rate_levels, default=None,
                         help=f"override the rate levels, e.g. 1,10,30 (Hz, each {MIN_RATE_HZ:g}..{MAX_RATE_HZ:g})")
-    parser.add_argument("--seed", type=non_negative_int, default=0, help="seed >= 0 (default 0)")
+    parser.add_argument("--seed", type=seed, default=0, help="seed >= 0 (default 0)")
 
 
 def _percentiles(ns: list[int]) -> tuple[float, float, float]:

@@ -18,7 +18,7 @@ import statistics
 import time
 from typing import Any
 
-from respecd.cli.args import non_negative_int, positive_int
+from respecd.cli.args import non_negative_int, positive_int, seed
 
 RESOLUTIONS = ((1280, 720), (960, 540), (640, 360))
 
@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=positive_int, default=10, help="timed runs per resolution (default 10)")
     parser.add_argument("--threads", type=non_negative_int, default=0,
                         help="torch threads (default 0: the profile default)")
-    parser.add_argument("--seed", type=non_negative_int, default=1, help="world seed >= 0 of the scene used as input")
+    parser.add_argument("--seed", type=seed, default=1, help="world seed >= 0 of the scene used as input")
 
 
 def _median_ms(fn, repeats: int) -> tuple[float, float]:

@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from respecd.cli.args import non_negative_int, positive_float, resolution
+from respecd.cli.args import non_negative_int, positive_float, resolution, seed
 from respecd.cli.outputs import check_output_dir
 from respecd.errors import InputError
 
@@ -41,7 +41,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--weights", default="builtin:sim-rover", help="detector checkpoint (default the shipped one)")
     parser.add_argument("--record-seconds", type=positive_float, default=10.0,
                         help="real-time recording measurement (s)")
-    parser.add_argument("--seed", type=non_negative_int, default=0, help="simulator seed >= 0")
+    parser.add_argument("--seed", type=seed, default=0, help="simulator seed >= 0")
     parser.add_argument("--torch-threads", type=non_negative_int, default=0,
                         help="detector threads for the replay (default: the profile's, 1)")
     parser.add_argument("--keep", metavar="DIR", help="keep the generated log and report in DIR")

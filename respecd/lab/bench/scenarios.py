@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from respecd.cli.args import non_negative_int, positive_float, positive_int
+from respecd.cli.args import positive_float, positive_int, seed
 from respecd.cli.outputs import check_output_dir, check_output_file
 
 QUICK_DURATION_S = 4.0
@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--duration", type=positive_float, help="seconds per scenario (default: the profile's, 30)")
     parser.add_argument("--samples-per-s", type=positive_float, default=1.0,
                         help="detector outcomes scored per second (> 0, default 1)")
-    parser.add_argument("--seed", type=non_negative_int,
+    parser.add_argument("--seed", type=seed,
                         help="first world seed, >= 0 (default 1000: held out from training)")
     parser.add_argument("--worlds", type=int, default=1, metavar="N",
                         help="sets of worlds (one world per scenario each, seeds SEED .. SEED + N x scenarios - 1): "

@@ -19,13 +19,13 @@ from typing import Any
 
 import numpy as np
 
-from respecd.cli.args import non_negative_int, positive_float, positive_int
+from respecd.cli.args import positive_float, positive_int, seed
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=positive_int, default=60, help="renders per setting (default 60)")
     parser.add_argument("--seconds", type=positive_float, default=10.0, help="streaming test length (default 10 s)")
-    parser.add_argument("--seed", type=non_negative_int, default=0, help="world seed >= 0 (default 0)")
+    parser.add_argument("--seed", type=seed, default=0, help="world seed >= 0 (default 0)")
 
 
 def _percentiles(wall: list[float], cpu: list[float]) -> dict[str, float]:

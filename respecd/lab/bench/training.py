@@ -18,7 +18,7 @@ import statistics
 import time
 from typing import Any
 
-from respecd.cli.args import non_negative_int
+from respecd.cli.args import seed
 from respecd.errors import InputError
 
 PRECISIONS = ("fp32", "bf16")
@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=12, help="timed steps per precision (default 12)")
     parser.add_argument("--warmup", type=int, default=2, help="untimed steps per precision first (default 2)")
     parser.add_argument("--threads", type=int, default=2, help="torch threads (default 2, as make weights)")
-    parser.add_argument("--seed", type=non_negative_int, default=0,
+    parser.add_argument("--seed", type=seed, default=0,
                         help="seed >= 0 of the simulated world and the batches")
 
 

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from respecd.cli.args import positive_float, resolution
-from respecd.errors import InputError
+from respecd.errors import ConfigError, InputError, report
 from respecd.lab.detector.metrics import ImageResult, average_precision
 from respecd.messages import SensorConfig
 
@@ -114,7 +114,6 @@ def seed_list(text: str) -> list[int]:
 
 def main(argv: list[str] | None = None) -> int:
     import json
-    import sys
 
     from respecd.cli.outputs import check_output_dir, check_output_file
     from respecd.config import load_profile
@@ -140,9 +139,8 @@ def main(argv: list[str] | None = None) -> int:
         check_output_dir("--cache-dir", a.cache_dir)
         configs = {text: parse_configuration(text) for text in a.configuration}
         profile = load_profile(a.profile)
-    except InputError as err:
-        print(f"fixed: {err}", file=sys.stderr)
-        return 2
+    except (ConfigError, InputError) as err:  # a bad profile too: FILE:LINE and what was expected
+        return report(err, "fixed")
     evaluator = make_evaluator(load_detector(profile, random_init=a.random_detector), profile, True, a.cache_dir)
     figures: dict[str, dict[str, Any]] = {}
     try:

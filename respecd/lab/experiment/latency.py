@@ -138,7 +138,7 @@ def write_reference(out: Path, profile_ref: str = "builtin:sim-rover", weights: 
 if __name__ == "__main__":
     import argparse
 
-    from respecd.cli.args import non_negative_int, positive_int
+    from respecd.cli.args import positive_int, seed
 
     parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.latency",
                                      description=write_reference.__doc__)
@@ -147,7 +147,7 @@ if __name__ == "__main__":
     parser.add_argument("--weights")
     parser.add_argument("--repeats", type=positive_int, default=5, help="timed calls per resolution (default 5)")
     parser.add_argument("--clock", choices=sorted(CLOCKS), default="cpu")
-    parser.add_argument("--seed", type=non_negative_int, default=500,
+    parser.add_argument("--seed", type=seed, default=500,
                         help="world seed of the frames (default 500: validation)")
     a = parser.parse_args()
     from respecd.cli.outputs import check_output_file

@@ -15,7 +15,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from respecd.cli.args import non_negative_int, positive_float, positive_int, unit_interval
+from respecd.cli.args import positive_float, positive_int, seed, unit_interval
 from respecd.lab.detector.metrics import ImageResult, average_precision
 from respecd.messages import conf_agg
 
@@ -84,7 +84,7 @@ if __name__ == "__main__":
 
     parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.probe", description=probe.__doc__)
     parser.add_argument("--profile", default="builtin:sim-rover")
-    parser.add_argument("--seed", type=non_negative_int, default=500, help="first world seed (default 500: validation)")
+    parser.add_argument("--seed", type=seed, default=500, help="first world seed (default 500: validation)")
     parser.add_argument("--worlds", type=positive_int, default=3, help="sets of worlds, at least 1 (default 3)")
     parser.add_argument("--duration", type=positive_float, default=20.0, help="seconds a world (default 20)")
     parser.add_argument("--latency", type=Path, required=True, help="a pinned latency file")
