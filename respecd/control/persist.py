@@ -20,7 +20,6 @@ import hashlib
 import io
 import json
 import os
-import tempfile
 import time
 import zipfile
 from pathlib import Path
@@ -30,6 +29,7 @@ import numpy as np
 import structlog
 
 from respecd import filekind
+from respecd.atomicfile import write_atomically
 from respecd.control.qlearning import QTable
 from respecd.errors import InputError
 
@@ -80,22 +80,7 @@ def save_table(path: Path, table: QTable, layout: dict[str, Any], info: dict[str
     buffer = io.BytesIO()
     meta_bytes = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
     np.savez_compressed(buffer, q=table.q, visits=table.visits, meta=meta_bytes)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(buffer.getbuffer())
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
+    write_atomically(path, buffer.getbuffer())
 
 
 EXPECTED = ("expected a respecd Q-table: an .npz of plain arrays q, visits and meta, as the daemon and "

@@ -9,13 +9,12 @@ figure. A report for a different log is replaced, not merged.
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import structlog
 
+from respecd.atomicfile import write_atomically
 from respecd.messages import MODALITIES
 
 log = structlog.get_logger(__name__)
@@ -54,11 +53,7 @@ def merge(path: Path, log_id: dict[str, Any], policy: str, entry: dict[str, Any]
 def write(path: Path, report: dict[str, Any], figure: bool = True) -> Path | None:
     """Atomically write the JSON, then (``figure``) the PNG timeline next to it; returns the
     PNG path, or None without one (or without matplotlib, the ``lab`` extra: the JSON is the report)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=path.name, dir=path.parent)
-    with os.fdopen(fd, "w", encoding="utf-8") as f:
-        json.dump(report, f, indent=1)
-    os.replace(tmp, path)
+    write_atomically(path, json.dumps(report, indent=1).encode("utf-8"))
     if not figure:
         return None
     plt = _pyplot()
