@@ -127,7 +127,7 @@ def test_probe_score_threshold_reaches_the_detector(profile_path: Path, tmp_path
 def test_probe_refuses_a_threshold_outside_0_1() -> None:
     result = subprocess.run([sys.executable, "-m", "respecd.lab.experiment.probe", "--latency", "x.json",
                              "--score-threshold", "1.5"], capture_output=True, text=True)
-    assert result.returncode == 2 and "expected a number in [0, 1], got 1.5" in result.stderr
+    assert result.returncode == 2 and "expected a number in [0, 1], got '1.5'" in result.stderr
     assert "Traceback" not in result.stderr
 
 

@@ -72,11 +72,14 @@ def test_a_log_that_cannot_be_read_is_exit_2_without_traceback(small_log: Path) 
         log = folder / "noperm.mcap"
         shutil.copy(small_log, log)
         log.chmod(0)
+        writable = folder / "w"  # the export's folder may be written by that user: only the log is refused
+        writable.mkdir(mode=0o777)
+        writable.chmod(0o777)
         drop = ["setpriv", "--reuid=65534", "--regid=65534", "--clear-groups"] if os.geteuid() == 0 else []
         cli = [*drop, sys.executable, "-m", "respecd.cli"]
         env = {**os.environ, "HOME": str(folder), "XDG_STATE_HOME": str(folder), "XDG_CACHE_HOME": str(folder)}
         for args in (["log", "info", str(log)], ["--replay", str(log), "--speed", "max"],
-                     ["log", "export", str(log), "--to", "rosbag2", str(folder / "out")]):
+                     ["log", "export", str(log), "--to", "rosbag2", str(writable / "out")]):
             result = subprocess.run([*cli, *args], capture_output=True, text=True, timeout=120, env=env,
                                     cwd=folder)
             assert result.returncode == 2, (args, result.stderr)
