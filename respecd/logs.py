@@ -94,7 +94,20 @@ def _factory(chosen: str) -> Any:
         from respecd.terminal import TerminalLogger
 
         return TerminalLogger
-    return structlog.PrintLoggerFactory()  # sys.stdout as it is at each line (pytest swaps it)
+    return lambda *_: StdoutLogger(sys.stdout)  # sys.stdout as it is at each line (pytest swaps it)
+
+
+class StdoutLogger(structlog.PrintLogger):
+    """structlog's PrintLogger, except that a stdout that went away (the reader of a pipe left, a
+    terminal hung up) ends the output, not the daemon: the line is dropped, the caller goes on."""
+
+    def msg(self, message: str) -> None:
+        try:
+            super().msg(message)
+        except (OSError, ValueError):  # BrokenPipeError, EIO; ValueError: the file was closed
+            pass
+
+    log = debug = info = warn = warning = error = critical = exception = fatal = msg
 
 
 class _StructlogHandler(logging.Handler):

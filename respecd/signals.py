@@ -1,4 +1,7 @@
-"""SIGTERM and SIGINT as a stop request, from the first moment of a command to its last.
+"""SIGTERM, SIGINT and SIGHUP as a stop request, from the first moment of a command to its last.
+
+SIGHUP is a terminal that hung up (an ssh session that dropped under ``respecd --record ...``):
+its default action would kill the process with the Q-table unsaved and the log unfinished.
 
 A signal that arrives before the event loop runs (while profiles are read, torch imported,
 the checkpoint loaded) is remembered and sets the stop event as soon as one exists, so the
@@ -13,7 +16,7 @@ import signal
 from types import FrameType, TracebackType
 from typing import Any
 
-SIGNALS = (signal.SIGTERM, signal.SIGINT)
+SIGNALS = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)
 
 
 class StopSignals:

@@ -34,6 +34,7 @@ class Terminal:
         self._stream = stream
         self._status: list[str] = []
         self._lock = threading.Lock()
+        self._gone = False  # the terminal hung up: nothing more is shown, the daemon goes on (and stops cleanly)
 
     @property
     def stream(self) -> TextIO:
@@ -45,24 +46,32 @@ class Terminal:
 
     def log_line(self, text: str) -> None:
         with self._lock:
-            self.stream.write(f"{self._erase()}{text}\n" + "\n".join(self._status))
-            self.stream.flush()
+            self._write(f"{self._erase()}{text}\n" + "\n".join(self._status))
 
     def status(self, line: str) -> None:
         width = shutil.get_terminal_size((120, 24)).columns
         lines = [row if len(row) < width else row[: max(width - 2, 1)] + "…" for row in panel(line)]
         with self._lock:
             erase, self._status = self._erase(), lines
-            self.stream.write(erase + "\n".join(lines))
-            self.stream.flush()
+            self._write(erase + "\n".join(lines))
 
     def close(self) -> None:
         """Leave the last status on screen, ending its line."""
         with self._lock:
             if self._status:
-                self.stream.write("\n")
-                self.stream.flush()
+                self._write("\n")
                 self._status = []
+
+    def _write(self, text: str) -> None:
+        """Write and flush; a terminal that hung up (EIO) or a closed pipe is left alone from then on:
+        a log line must never stop the daemon from saving its table and finishing its log."""
+        if self._gone:
+            return
+        try:
+            self.stream.write(text)
+            self.stream.flush()
+        except (OSError, ValueError):  # ValueError: the stream was closed
+            self._gone = True
 
 
 TERMINAL = Terminal()

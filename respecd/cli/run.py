@@ -148,7 +148,10 @@ def status_printer(console: bool) -> Any:
             if sys.stdout.isatty():
                 TERMINAL.status(line)  # refreshed in place, log lines scroll above it
             else:
-                print(line, flush=True)
+                try:
+                    print(line, flush=True)
+                except OSError:  # the reader of the pipe left: the daemon goes on (and stops cleanly)
+                    pass
     else:
 
         def sink(fields: dict[str, Any], line: str) -> None:
