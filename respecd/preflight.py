@@ -56,11 +56,16 @@ def check_state_dir(path: Path, create: bool = True) -> str | None:
     return None
 
 
+def learns(loaded: LoadedProfile, policy: str | None) -> bool:
+    """Whether the daemon will learn (and so write its Q-table): ``policy`` is ``--policy``."""
+    controller = loaded.model.controller
+    return controller.enabled and (policy or controller.policy) == "learn"
+
+
 def _learning_state_dir(loaded: LoadedProfile, state_dir: Path | None, policy: str | None,
                         create: bool) -> list[str]:
     """A learning daemon saves its Q-table in the state directory, so it must be writable at start."""
-    controller = loaded.model.controller
-    if state_dir is None or not controller.enabled or (policy or controller.policy) != "learn":
+    if state_dir is None or not learns(loaded, policy):
         return []
     problem = check_state_dir(state_dir, create)
     return [f"--state-dir: {problem}"] if problem else []

@@ -189,3 +189,29 @@ def test_weights_that_are_a_directory_or_no_torch_file_are_named(tmp_path: Path)
     problem, = check_profile(read_profile(path))
     assert f"perception.weights: {garbage}: not a torch checkpoint: it looks like" in problem
     assert "expected a respecd checkpoint written by `respecd train`" in problem
+
+
+def test_a_second_learning_daemon_on_the_same_state_dir_is_refused(tmp_path: Path) -> None:
+    """Each would save its Q-table over the other's; the first holds the directory until it ends."""
+    import signal
+    import time
+
+    state = tmp_path / "state"
+    argv = [*RESPECD, "--state-dir", str(state), "--log-format", "json"]
+    with subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True) as first:
+        try:
+            assert first.stdout is not None
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline and "driver_started" not in first.stdout.readline():
+                assert first.poll() is None
+            second = _run("--duration", "2", "--state-dir", str(state))
+            assert second.returncode == 2 and "Traceback" not in second.stderr
+            assert f"another respecd (pid {first.pid}) is learning into this state directory" in second.stderr
+            static = _run("--duration", "1", "--policy", "static", "--state-dir", str(state))
+            assert static.returncode == 0  # a policy that only reads the table runs beside it
+            first.send_signal(signal.SIGTERM)
+            assert first.wait(timeout=30) == 0
+        finally:
+            if first.poll() is None:
+                first.kill()
+    assert _run("--duration", "1", "--state-dir", str(state), timeout=120).returncode == 0  # released at exit

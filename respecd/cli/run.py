@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import os
 import sys
 from typing import Any
@@ -71,7 +72,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(args: argparse.Namespace) -> int:
     """The daemon, or ``--replay``; SIGTERM/SIGINT stop either cleanly from the first moment."""
+    from respecd.control.statelock import learning_into
     from respecd.logs import configure_logging
+    from respecd.preflight import learns
     from respecd.signals import StopSignals
 
     check_flags(args)
@@ -85,7 +88,8 @@ def main(args: argparse.Namespace) -> int:
         loaded = read_profile(args.config)
         state_dir = prepare_state_dir(args.state_dir)
         preflight(loaded, state_dir, args.policy, record=args.record)
-        return asyncio.run(run_live(loaded.model, args, signals, console=fmt == "console", state_dir=state_dir))
+        with learning_into(state_dir) if learns(loaded, args.policy) else contextlib.nullcontext():
+            return asyncio.run(run_live(loaded.model, args, signals, console=fmt == "console", state_dir=state_dir))
 
 
 REPLAY_ONLY = ("speed", "report", "topics", "save_table")
