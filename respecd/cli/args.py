@@ -60,7 +60,10 @@ def non_negative_int(text: str) -> int:
 def seed(text: str) -> int:
     """A random seed 0..2**63-1: numpy refuses negative ones, torch.manual_seed overflows past 64 bits
     (and the tools add world offsets to a seed)."""
-    return _integer(text, 0, MAX_SEED)
+    value = _integer(text, 0)
+    if value > MAX_SEED:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 0 and below 2**63, got {text!r}")
+    return value
 
 
 def positive_int(text: str) -> int:
