@@ -223,3 +223,13 @@ def test_the_daemon_refuses_a_recording_name_already_taken(tmp_path: Path, exist
     assert f"{tmp_path / existing} exists and a recording is never overwritten" in done.stderr
     assert (tmp_path / existing).read_bytes() == b"yesterday's session"
     assert sorted(p.name for p in tmp_path.iterdir()) == [existing]  # nothing started: no state dir, no log
+
+
+@pytest.mark.parametrize("template", ["rec-{time}.mcap", "rec-{time}-{index}.mcap"])
+def test_retention_sees_segments_past_999(tmp_path: Path, template: str) -> None:
+    """Segment 1000 gets a four-digit number; a three-digit pattern hid it and every later one from
+    max_bytes and delete_oldest, and a days-long recording filled the disk."""
+    for index in (998, 999, 1000, 1001, 12345):
+        writer_module.segment_path(str(tmp_path / template), STARTED, index).write_bytes(b"x")
+    found = recordings(str(tmp_path / template))
+    assert [r.index for r in found] == [998, 999, 1000, 1001, 12345]  # all of them, in segment order

@@ -41,9 +41,9 @@ def pattern(template: str) -> tuple[Path, re.Pattern[str]]:
         return re.escape(text).replace(re.escape("{time}"), r"(?P<time>\d{8}T\d{6})")
 
     if "{index}" in path.name:
-        name = escaped(path.name).replace(re.escape("{index}"), r"(?P<index>\d{3})")
+        name = escaped(path.name).replace(re.escape("{index}"), r"(?P<index>\d{3,})")
     else:  # segments after the first get -001, -002, ... before the suffix (writer.segment_path)
-        name = escaped(path.stem) + r"(?:-(?P<index>\d{3}))?" + re.escape(path.suffix)
+        name = escaped(path.stem) + r"(?:-(?P<index>\d{3,}))?" + re.escape(path.suffix)
     return path.parent, re.compile(name)
 
 
