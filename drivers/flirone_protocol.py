@@ -4,8 +4,11 @@ The camera streams frames on bulk endpoint 0x85, each a 28-byte little-endian he
 (magic ``EF BE 00 00``, a type word, FrameSize, ThermalSize, JpgSize, StatusSize, and a
 word that repeats when the device resends a frame) followed by the raw thermal block, the
 visible-camera JPEG and a NUL-terminated JSON status. USB reads split a frame anywhere, so
-``FrameAssembler.feed`` buffers bytes and frames by the header's sizes; after a bad magic it
-scans forward to the next magic (flirone-v4l2 only reset and waited, which loses more).
+``FrameAssembler.feed`` buffers bytes and frames by the header's sizes. A header whose
+FrameSize its parts do not account for is refused; after a refused header or a bad magic it
+scans forward to the next magic (flirone-v4l2 only reset and waited, which loses more), and a
+valid header inside a pending frame's span restarts assembly there (bytes were lost), so one
+damaged frame costs one frame however the reads are cut. ``damage`` counts the frames lost.
 
 Thermal layouts, told apart by how many 164-byte VoSPI packets the camera put in the block
 (SENSORS.md §3); the geometry comes from the frame, never from the profile:
@@ -35,6 +38,9 @@ MAGIC = b"\xef\xbe\x00\x00"
 HEADER = struct.Struct("<4s6I")  # magic, type, frame, thermal, jpeg, status, repeat-word
 HEADER_SIZE = HEADER.size  # 28 bytes
 MAX_FRAME_SIZE = 1 << 20  # flirone-v4l2's BUF85SIZE, "size got from android app"
+# FrameSize beyond the sum of the three parts (0 in every real frame; a little room for a firmware
+# that pads): a header claiming more is a damaged one, not a frame to wait for
+MAX_FRAME_PADDING = 4096
 
 LINE_BYTES = 164  # one VoSPI line: u16 id, u16 CRC, 80 x u16 pixels
 LINE_WORDS = LINE_BYTES // 2
@@ -59,10 +65,16 @@ class FrameHeader:
     repeat_word: int
 
     @classmethod
-    def parse(cls, raw: bytes | bytearray | memoryview) -> FrameHeader | None:
-        """The header at the start of ``raw``, or None when the magic or the sizes are wrong."""
-        magic, kind, frame, thermal, jpeg, status, word = HEADER.unpack_from(raw)
-        if magic != MAGIC or frame > MAX_FRAME_SIZE or thermal + jpeg + status > frame:
+    def parse(cls, raw: bytes | bytearray | memoryview, offset: int = 0) -> FrameHeader | None:
+        """The header at ``offset`` in ``raw``, or None when the magic or the sizes are wrong.
+
+        The parts must account for the frame: FrameSize is ThermalSize + JpgSize + StatusSize
+        (all 20 frames of the real capture, exactly), give or take ``MAX_FRAME_PADDING``. A
+        FrameSize beyond that is refused at once instead of being waited for.
+        """
+        magic, kind, frame, thermal, jpeg, status, word = HEADER.unpack_from(raw, offset)
+        parts = thermal + jpeg + status
+        if magic != MAGIC or frame > MAX_FRAME_SIZE or not parts <= frame <= parts + MAX_FRAME_PADDING:
             return None
         return cls(frame, thermal, jpeg, status, kind, word)
 
@@ -91,7 +103,8 @@ class AssemblerStats:
     bytes_in: int = 0
     bytes_skipped: int = 0  # discarded while hunting for a magic
     resyncs: int = 0  # times the buffer did not start with a valid header
-    truncated: int = 0  # partial frames abandoned because a new frame began
+    lost_sync: int = 0  # stretches of bytes skipped once frames were flowing (a damaged header or frame)
+    truncated: int = 0  # partial frames abandoned because a new frame began inside their declared span
     bad_thermal: int = 0  # frames dropped because the thermal block fit no layout
     bad_status: int = 0  # status blocks that were not JSON
     bad_line_ids: int = 0  # 80x60 frames whose VoSPI line numbers were out of order
@@ -147,55 +160,90 @@ class FrameAssembler:
 
     def __init__(self) -> None:
         self._buf = bytearray()
-        self._need = 0  # bytes the frame at the buffer's start needs in all, once its header is known
+        self._header: FrameHeader | None = None  # checked header of the frame at the buffer's start
+        self._scanned = 1  # buffer index up to which that frame's bytes hold no other valid header
+        self._synced = False  # a valid header was seen: bytes skipped from now on are damage
+        self._skipping = False  # inside a stretch of skipped bytes (counted once in ``lost_sync``)
         self._last: tuple[FrameHeader, bytes] | None = None
         self.stats = AssemblerStats()
+
+    @property
+    def damage(self) -> int:
+        """Frames lost to bad bytes so far: cut short, skipped over, or with an unreadable thermal block."""
+        s = self.stats
+        return s.truncated + s.lost_sync + s.bad_thermal
 
     def feed(self, chunk: bytes | bytearray | memoryview) -> list[FlirFrame]:
         """Add one USB read; return the frames it completed (usually zero or one)."""
         self.stats.bytes_in += len(chunk)
-        if self._buf and _starts_frame(chunk):
-            # the device began a new frame: what we hold can never complete (flirone-v4l2 rule)
-            if _starts_frame(self._buf):
-                self.stats.truncated += 1
-            else:
-                self.stats.bytes_skipped += len(self._buf)
-            self._buf.clear()
-            self._need = 0
         self._buf += chunk
-        if len(self._buf) < self._need:  # mid-frame: the header was checked when it arrived
-            return []
         frames: list[FlirFrame] = []
         while True:
-            header = self._sync()
-            self._need = HEADER_SIZE + header.frame_size if header is not None else 0
-            if header is None or len(self._buf) < self._need:
+            header = self._header
+            if header is None:
+                header = self._sync()
+                if header is None:
+                    return frames
+                self._header, self._scanned = header, 1
+            end = HEADER_SIZE + header.frame_size
+            inner = self._inner_header(end)
+            if inner > 0:
+                # a frame starts inside this one's declared span: bytes were lost (a cut frame, or a
+                # FrameSize too large); give the partial frame up now and assemble from there
+                self.stats.truncated += 1
+                del self._buf[:inner]
+                self._header = None
+                continue
+            if len(self._buf) < end:
                 return frames
-            end = self._need
-            self._need = 0
             body = bytes(self._buf[HEADER_SIZE:end])
             del self._buf[:end]
+            self._header = None
             frame = self._decode(header, body)
             if frame is not None:
                 frames.append(frame)
+
+    def _inner_header(self, end: int) -> int:
+        """Where a valid header starts inside the pending frame's span (-1: none yet); scans new bytes only."""
+        buf = self._buf
+        complete = len(buf) >= end
+        limit = min(end, len(buf))
+        at = self._scanned
+        while True:
+            at = buf.find(MAGIC, at, limit)
+            if at < 0:
+                self._scanned = max(self._scanned, limit - (len(MAGIC) - 1))  # a magic may straddle the end
+                return -1
+            if at + HEADER_SIZE > len(buf):
+                if not complete:
+                    self._scanned = at  # check it once its header has arrived
+                    return -1
+            elif FrameHeader.parse(buf, at) is not None:
+                return at
+            at += 1
 
     def _sync(self) -> FrameHeader | None:
         """Drop bytes until the buffer starts with a valid header; None if more bytes are needed."""
         while len(self._buf) >= HEADER_SIZE:
             header = FrameHeader.parse(self._buf)
             if header is not None:
+                self._synced, self._skipping = True, False
                 return header
             self.stats.resyncs += 1
             at = self._buf.find(MAGIC, 1)
             skip = at if at > 0 else len(self._buf) - (len(MAGIC) - 1)  # keep a possibly split magic
-            self.stats.bytes_skipped += skip
-            del self._buf[:skip]
+            self._skip(skip)
         if self._buf and not MAGIC.startswith(bytes(self._buf[: len(MAGIC)])):
             at = self._buf.find(MAGIC, 1)
-            skip = at if at > 0 else max(1, len(self._buf) - (len(MAGIC) - 1))
-            self.stats.bytes_skipped += skip
-            del self._buf[:skip]
+            self._skip(at if at > 0 else max(1, len(self._buf) - (len(MAGIC) - 1)))
         return None
+
+    def _skip(self, count: int) -> None:
+        self.stats.bytes_skipped += count
+        if self._synced and not self._skipping:
+            self.stats.lost_sync += 1  # the stream was in frames and lost them: at least one frame is gone
+        self._skipping = True
+        del self._buf[:count]
 
     def _decode(self, header: FrameHeader, body: bytes) -> FlirFrame | None:
         view = memoryview(body)
@@ -234,10 +282,6 @@ class FrameAssembler:
         s.ffc += frame.ffc
         key = f"{frame.layout[0]}x{frame.layout[1]}"
         s.layouts[key] = s.layouts.get(key, 0) + 1
-
-
-def _starts_frame(chunk: bytes | bytearray | memoryview) -> bool:
-    return len(chunk) >= HEADER_SIZE and FrameHeader.parse(chunk) is not None
 
 
 def build_frame(

@@ -13,7 +13,9 @@ import pytest
 
 from respecd.drivers.flirone_protocol import (
     HEADER_SIZE,
+    MAX_FRAME_PADDING,
     FrameAssembler,
+    FrameHeader,
     build_frame,
     encode_pro_thermal,
 )
@@ -219,3 +221,55 @@ def test_deeply_nested_status_json_is_a_bad_status_not_a_crash() -> None:
     assembler = FrameAssembler()
     (frame,) = assembler.feed(nested)
     assert frame.status is None and assembler.stats.bad_status == 1
+
+
+def frame_starts(stream: bytes) -> list[int]:
+    return [i for i in range(len(stream)) if stream.startswith(b"\xef\xbe\x00\x00", i)]
+
+
+def split(stream: bytes, size: int) -> list[bytes]:
+    return [stream[i : i + size] for i in range(0, len(stream), size)]
+
+
+@pytest.mark.parametrize("read_size", [32768, 5000, 777])
+def test_overstated_frame_size_costs_one_frame_with_misaligned_reads(capture: Path, read_size: int) -> None:
+    # reads that do not line up with frames (as RecordedTransport.from_path cuts a .bin): a FrameSize of
+    # 900000 in frame 5 used to swallow the frames after it until a read happened to begin with a header
+    stream = bytearray((capture / "usb_stream_concat.bin").read_bytes())
+    struct.pack_into("<I", stream, frame_starts(bytes(stream))[5] + 8, 900_000)
+    frames, assembler = feed_all(split(bytes(stream), read_size))
+    reference, _ = feed_all(split((capture / "usb_stream_concat.bin").read_bytes(), read_size))
+    assert len(reference) == 20 and len(frames) == 19
+    kept = reference[:5] + reference[6:]
+    assert all(np.array_equal(a.thermal, b.thermal) for a, b in zip(frames, kept, strict=True))
+    assert assembler.damage == 1 and assembler.stats.lost_sync == 1
+
+
+@pytest.mark.parametrize("read_size", [32768, 5000])
+def test_cut_frame_costs_one_frame_with_misaligned_reads(capture: Path, read_size: int) -> None:
+    stream = (capture / "usb_stream_concat.bin").read_bytes()
+    at = frame_starts(stream)[5]
+    cut = stream[: at + 30_000] + stream[at + 50_000 :]  # 20 kB of frame 5's JPEG lost
+    frames, assembler = feed_all(split(cut, read_size))
+    assert len(frames) == 19
+    assert assembler.stats.truncated == 1 and assembler.damage == 1 and assembler.stats.bytes_skipped == 0
+
+
+def test_frame_size_must_match_its_parts() -> None:
+    good = build_frame(encode_pro_thermal(pro_image()), b"\xff\xd8", {"shutterState": "ON"})
+    assert FrameHeader.parse(good) is not None
+    padded = bytearray(good)
+    struct.pack_into("<I", padded, 8, len(good) - HEADER_SIZE + MAX_FRAME_PADDING)
+    assert FrameHeader.parse(padded) is not None  # a little padding is tolerated
+    struct.pack_into("<I", padded, 8, len(good) - HEADER_SIZE + MAX_FRAME_PADDING + 1)
+    assert FrameHeader.parse(padded) is None
+
+
+def test_real_frames_declare_exactly_their_parts(capture: Path) -> None:
+    headers = headers_in((capture / "usb_stream_concat.bin").read_bytes())
+    assert len(headers) == 20 and all(frame == thermal + jpeg + status for frame, thermal, jpeg, status in headers)
+
+
+def test_garbage_before_the_first_frame_is_not_damage(chunks: list[bytes]) -> None:
+    frames, assembler = feed_all([b"\x01" * 5000, *chunks])
+    assert len(frames) == 20 and assembler.stats.bytes_skipped == 5000 and assembler.damage == 0
