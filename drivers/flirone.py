@@ -15,6 +15,7 @@ device or the permission is missing.
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import replace
 from typing import Any, Literal
 
@@ -30,6 +31,7 @@ from respecd.messages import Modality, Resolution, SensorConfig
 
 log = structlog.get_logger(__name__)
 
+DAMAGE_SUMMARY_S = 60.0  # corrupt USB data: the first damaged frame is logged, then a summary at most this often
 NATIVE_RATE_HZ = 8.7  # measured FLIR One thermal rate ("regular 8-9 fps")
 PAPER_THERMAL_RESOLUTIONS: tuple[Resolution, ...] = ((160, 120), (320, 240))  # the RL action set
 STREAM_MODALITY = {"thermal": "thermal", "visible": "rgb"}
@@ -100,6 +102,10 @@ class FlirSource:
         self.after_ffc = False
         self.recovered_errors = 0
         self.crc_logged = False
+        self.damage_seen = 0  # assembler damage already counted in health
+        self.damage_logged = False
+        self.damage_summarized = 0  # damage already in a log line
+        self.summary_due = 0.0
         # a recording played as fast as read is timed by the camera's own clock (status JSON)
         self.device_timed = driver.device_timed
         self.device_anchor: tuple[float, float] | None = None  # (clock t, device t) of the first frame
@@ -110,7 +116,43 @@ class FlirSource:
         self.transport.start()
 
     def close(self) -> None:
+        self._summarize_damage()
         self.transport.close()
+
+    def _count_damage(self) -> None:
+        """Frames the assembler lost to bad bytes: health drops and errors; the first one logged, then summaries."""
+        damage = self.assembler.damage
+        new, self.damage_seen = damage - self.damage_seen, damage
+        counts = self._damage_counts()
+        health = self.driver.health
+        health.drops += new
+        health.errors += new
+        health.last_error = (
+            f"corrupt USB frame data: {damage} damaged frames dropped ({counts['truncated']} cut short, "
+            f"{counts['lost_sync']} bad headers skipped, {counts['bad_thermal']} unreadable thermal blocks)"
+        )
+        now = time.monotonic()
+        if not self.damage_logged:
+            self.damage_logged, self.damage_summarized, self.summary_due = True, damage, now + DAMAGE_SUMMARY_S
+            log.warning("flirone_stream_damaged", sensor=self.driver.name, **counts,
+                        hint=f"USB data lost or corrupted (cable, hub, power); damaged frames are dropped and counted "
+                        f"in health drops/errors; more of it is summarised every {DAMAGE_SUMMARY_S:g} s")
+        elif now >= self.summary_due:
+            self._summarize_damage()
+
+    def _summarize_damage(self) -> None:
+        """One line for the damage since the last line (every DAMAGE_SUMMARY_S at most, and at close)."""
+        damage = self.assembler.damage
+        if damage <= self.damage_summarized:
+            return
+        log.warning("flirone_stream_damage_summary", sensor=self.driver.name,
+                    damaged_frames=damage - self.damage_summarized, **self._damage_counts())
+        self.damage_summarized, self.summary_due = damage, time.monotonic() + DAMAGE_SUMMARY_S
+
+    def _damage_counts(self) -> dict[str, int]:
+        s = self.assembler.stats
+        return {"truncated": s.truncated, "lost_sync": s.lost_sync, "bytes_skipped": s.bytes_skipped,
+                "bad_thermal": s.bad_thermal, "frames": s.frames}
 
     def reconfigure(self, applied: SensorConfig) -> SensorConfig:
         if applied.rate_hz != self.decimator.rate_hz:
@@ -124,6 +166,8 @@ class FlirSource:
             if not chunk:
                 return END if getattr(self.transport, "exhausted", False) else None
             self.pending = self.assembler.feed(chunk)
+            if self.assembler.damage > self.damage_seen:
+                self._count_damage()
             if not self.pending:
                 return None
         return self._emit(self.pending.pop(0))

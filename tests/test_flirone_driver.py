@@ -4,6 +4,7 @@ decimation, the rate cap, upscaling, FFC flags, unplug, and the missing-libusb p
 from __future__ import annotations
 
 import asyncio
+import struct
 import threading
 from pathlib import Path
 
@@ -251,3 +252,41 @@ async def test_a_frame_with_a_corrupted_line_is_dropped_or_flagged(chunks: list[
         assert len(frames) == 18 and driver.health.drops >= 1 and all(f.meta["crc_errors"] == 0 for f in frames)
     else:
         assert len(frames) == 18 and frames[0].meta["crc_errors"] == 1
+
+
+@pytest.mark.parametrize("damage", ["cut", "bad_magic", "bad_length"])
+async def test_damaged_frames_are_counted_and_logged_once(chunks: list[bytes], damage: str) -> None:
+    from structlog.testing import capture_logs
+
+    starts = [i for i, c in enumerate(chunks) if c.startswith(b"\xef\xbe\x00\x00")]
+    damaged = [bytearray(c) for c in chunks]
+    for k in (5, 11):
+        if damage == "bad_magic":
+            damaged[starts[k]][0:4] = b"\xef\xbe\x00\x01"
+        elif damage == "bad_length":
+            struct.pack_into("<I", damaged[starts[k]], 8, 900_000)
+    if damage == "cut":  # each frame's last read lost
+        damaged = [c for i, c in enumerate(damaged) if i not in (starts[6] - 1, starts[12] - 1)]
+    undecimated = config(rate_hz=30, max_rate_hz=30)  # every frame assembled is delivered
+    driver = FlirOneDriver(undecimated, MonotonicClock(), transport=RecordedTransport([bytes(c) for c in damaged]))
+    with capture_logs() as logs:
+        frames = await collect(driver)
+    assert len(frames) == 18
+    assert driver.health.drops == 2 and driver.health.errors == 2
+    assert driver.health.last_error is not None and "2 damaged frames dropped" in driver.health.last_error
+    first = [e for e in logs if e["event"] == "flirone_stream_damaged"]
+    summaries = [e for e in logs if e["event"] == "flirone_stream_damage_summary"]
+    assert len(first) == 1 and first[0]["log_level"] == "warning"
+    # the second damaged frame is not a line of its own: it is in the summary written at stop
+    assert len(summaries) == 1 and summaries[0]["damaged_frames"] == 1
+    assert summaries[0]["truncated"] + summaries[0]["lost_sync"] == 2
+
+
+async def test_undamaged_capture_reports_nothing(chunks: list[bytes]) -> None:
+    from structlog.testing import capture_logs
+
+    driver = FlirOneDriver(config(), MonotonicClock(), transport=RecordedTransport(chunks))
+    with capture_logs() as logs:
+        await collect(driver)
+    assert (driver.health.drops, driver.health.errors) == (0, 0)
+    assert not [e for e in logs if e["event"].startswith("flirone_stream_damage")]
