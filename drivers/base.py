@@ -107,6 +107,9 @@ class Driver(abc.ABC):
 
     key: ClassVar[str]
     _announce: Callable[[], None] | None = None  # set by announce_changes
+    # frames() returned because the stream ended by itself (a video file or recording played to
+    # its end without loop), not through stop() or an error: a normal end, not a failure
+    finished: bool = False
 
     def __init__(self, config: DriverConfigBase, clock: Clock, context: DriverContext | None = None) -> None:
         self.config = config

@@ -290,6 +290,7 @@ class ThreadedDriver(Driver):
             log.debug("driver_start_failed", sensor=self.name, error=str(err))  # the supervisor logs it once
             raise
         self._worker, self._handoff, self._seen_drops, self._ended = worker, handoff, 0, False
+        self.finished = False
         log.debug("driver_started", sensor=self.name, driver=self.key)  # lifecycle is logged by the supervisor
 
     async def stop(self) -> None:
@@ -325,6 +326,7 @@ class ThreadedDriver(Driver):
             if item is END or isinstance(item, BaseException):
                 self._ended = True
             if item is END:
+                self.finished = self._worker is worker  # the source ended by itself, not through stop()
                 return
             if isinstance(item, BaseException):
                 log.debug("driver_failed", sensor=self.name, error=str(item))

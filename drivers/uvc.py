@@ -88,6 +88,7 @@ class UVCDriver(ThreadedDriver):
         offered = tuple((int(w), int(h)) for w, h in config.resolutions)
         self._caps = Capabilities("rgb", offered)  # until the device says more
         self._source: UVCSource | None = None
+        self._short_warned = False  # a truncated file is logged once, counted in health.errors every pass
         self._request = config.initial_request()  # clamped again against what the device confirms
         self.applied = clamp_request(self._caps, self._request)
 
@@ -98,8 +99,17 @@ class UVCDriver(ThreadedDriver):
     def make_source(self, stop: threading.Event) -> UVCSource:
         from respecd.drivers.uvc_capture import UVCSource  # OpenCV only once a camera is used
 
-        self._source = UVCSource(self.config, self.clock, self._request, stop)
+        self._source = UVCSource(self.config, self.clock, self._request, stop, on_short_file=self._short_file)
         return self._source
+
+    def _short_file(self, reached: int, promised: int) -> None:
+        """Worker thread: a video file ended before the frame count its header promises (cut short)."""
+        message = f"video file {self.config.device} ended after {reached} of the {promised} frames it declares"
+        self.health.error(message + " (truncated?)")
+        if not self._short_warned:
+            self._short_warned = True
+            log.warning("uvc_file_truncated", sensor=self.name, file=str(self.config.device), frames_read=reached,
+                        frames_declared=promised, hint="the file was cut short (copy or recording interrupted?)")
 
     async def start(self) -> None:
         await super().start()

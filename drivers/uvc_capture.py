@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import threading
+from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -48,8 +49,13 @@ def limit_v4l2_wait() -> int:
 class UVCSource:
     """The capture as the worker thread sees it (see ``BlockingSource``)."""
 
-    def __init__(self, cfg: UVCConfig, clock: Clock, request: SensorConfig, stop: threading.Event) -> None:
+    def __init__(
+        self, cfg: UVCConfig, clock: Clock, request: SensorConfig, stop: threading.Event,
+        on_short_file: Callable[[int, int], None] | None = None,
+    ) -> None:
         self.cfg = cfg
+        self.on_short_file = on_short_file  # (frames read, frames promised): a pass ended early
+        self.frame_count = 0  # frames the file's header promises (0: not told)
         self.clock = clock
         self.stop = stop
         self.request = request
@@ -115,6 +121,8 @@ class UVCSource:
         fps = self.cap.get(cv2.CAP_PROP_FPS)
         self.device_fps = fps if 0 < fps <= 1000 else MAX_RATE_HZ  # some containers carry no rate
         self.native = (int(self.cap.get(cv2.CAP_PROP_FRAME_WIDTH)), int(self.cap.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+        count = self.cap.get(cv2.CAP_PROP_FRAME_COUNT)
+        self.frame_count = int(count) if 0 < count < 1e9 else 0
         # native first: it is the best a file offers (no resampling), and the default size
         offered = _unique([self.native, *sorted(map(tuple, self.cfg.resolutions), key=lambda r: -r[0] * r[1])])
         area = self.native[0] * self.native[1]
@@ -220,7 +228,10 @@ class UVCSource:
     def _read_file(self) -> Sample | object | None:
         assert self.cap is not None
         if not self.cap.grab():
+            self._pass_ended()
             if not self.cfg.loop:
+                log.info("uvc_file_ended", sensor=self.cfg.name, file=str(self.cfg.device), frames=self.index,
+                         passes=self.loops + 1)
                 return END
             self._rewind()
         t = self.t0 + self.offset + self.index / self.device_fps
@@ -230,6 +241,11 @@ class UVCSource:
         if not self.enabled or not self.decimator.accept(t):
             return None
         return self._retrieve(t, {"source": "file", "loop": self.loops, "file_frame": self.index - 1})
+
+    def _pass_ended(self) -> None:
+        """A pass that ended before the frame count the container promised: a truncated file."""
+        if 0 < self.index < self.frame_count and self.on_short_file is not None:
+            self.on_short_file(self.index, self.frame_count)
 
     def _rewind(self) -> None:
         assert self.cap is not None

@@ -334,3 +334,78 @@ def test_v4l2_reads_give_up_after_a_second(monkeypatch: pytest.MonkeyPatch) -> N
     assert os.environ["OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT"] == "1" and source.select_timeout_s == 1
     monkeypatch.setenv("OPENCV_VIDEOIO_V4L_SELECT_TIMEOUT", "4")  # the operator's own choice wins
     assert _moded_source(monkeypatch, mjpg=True).select_timeout_s == 4
+
+
+@pytest.fixture(scope="module")
+def cut_video(video: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The clip cut at 60% of its bytes (a copy interrupted): the header still declares 30 frames."""
+    path = tmp_path_factory.mktemp("uvc-cut") / "cut.avi"
+    data = video.read_bytes()
+    path.write_bytes(data[: int(len(data) * 0.6)])
+    return path
+
+
+async def test_truncated_file_is_warned_once_and_counted_each_time(cut_video: Path) -> None:
+    from structlog.testing import capture_logs
+
+    driver = UVCDriver(config(cut_video), MonotonicClock())
+    with capture_logs() as logs:
+        first = await collect(driver)
+        second = await collect(driver)  # played again (a restart): counted again, not warned again
+    assert 0 < len(first) == len(second) < FRAMES
+    warned = [e for e in logs if e["event"] == "uvc_file_truncated"]
+    assert len(warned) == 1 and warned[0]["log_level"] == "warning"
+    assert (warned[0]["frames_read"], warned[0]["frames_declared"], warned[0]["file"]) == (len(first), FRAMES,
+                                                                                           str(cut_video))
+    assert driver.health.errors == 2
+    assert driver.health.last_error == f"video file {cut_video} ended after {len(first)} of the {FRAMES} frames it " \
+        "declares (truncated?)"
+
+
+async def test_truncated_looping_file_is_counted_per_pass(cut_video: Path) -> None:
+    driver = UVCDriver(config(cut_video, loop=True), MonotonicClock())
+    frames = await collect(driver, limit=40)
+    passes = max(f.meta["loop"] for f in frames)
+    assert passes >= 1 and driver.health.errors == passes
+
+
+async def test_complete_file_ends_normally(video: Path) -> None:
+    from structlog.testing import capture_logs
+
+    driver = UVCDriver(config(video), MonotonicClock())
+    with capture_logs() as logs:
+        frames = await collect(driver)
+    assert len(frames) == FRAMES and driver.finished
+    assert (driver.health.errors, driver.health.last_error) == (0, None)
+    ended = [e for e in logs if e["event"] == "uvc_file_ended"]
+    assert len(ended) == 1 and ended[0]["log_level"] == "info" and ended[0]["frames"] == FRAMES
+    assert not [e for e in logs if e["log_level"] in ("warning", "error")]
+
+
+async def test_a_stopped_driver_has_not_finished(video: Path) -> None:
+    driver = UVCDriver(config(video), MonotonicClock())
+    await collect(driver, limit=3)
+    assert not driver.finished
+
+
+async def test_under_the_daemon_a_file_that_ended_stays_ended(video: Path) -> None:
+    """The session's runner: one pass, one info line; no stage_returned warning and no replay per backoff."""
+    from structlog.testing import capture_logs
+
+    from respecd.session import until_finished
+    from respecd.supervisor import Backoff, driver_runner, supervise
+
+    driver = UVCDriver(config(video), MonotonicClock())
+    frames: list[Frame] = []
+    with capture_logs() as logs:
+        task = asyncio.create_task(
+            supervise("driver:rgb", until_finished(driver, driver_runner(driver, frames.append)),
+                      backoff=Backoff(initial_s=0.05, max_s=0.05))
+        )
+        await asyncio.sleep(1.5)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)
+    assert len(frames) == FRAMES  # before: played again after every backoff
+    assert [e["event"] for e in logs if e["log_level"] in ("warning", "error")] == []
+    assert [e["event"] for e in logs if e["event"] == "uvc_file_ended"] == ["uvc_file_ended"]
+    assert worker_threads() == []
