@@ -12,8 +12,12 @@ happened meanwhile. A stall, a read error (unplugged board) or a reconfiguration
 rejected or never answered starts one recovery: reopen the ports, send the last request (or
 the last profile that streamed, if the request is what failed) from ``sensorStop`` +
 ``flushCfg``, and wait for packets, with exponential backoff. It is logged once when it
-begins (``radar.lost``, with the retry interval), again only if the cause changes kind, and
-once when packets flow (``radar.back``).
+begins (``radar.lost``), at info level if the cause later changes kind, and once when packets
+flow (``radar.back``); the per-try lines (CLI retries, cfg restarts, read errors) are debug.
+Damaged data (a bad packet, garbage between packets) counts in ``health.errors`` and is a
+warning the first time, then an info summary at most every ``DAMAGE_SUMMARY_S``. Frames are
+counted (``health.frames``, the measured rate) by the supervisor's runner as it delivers them,
+as for every driver.
 """
 
 from __future__ import annotations
@@ -22,6 +26,7 @@ import asyncio
 import contextlib
 import os
 import time
+from collections import deque
 from collections.abc import AsyncIterator
 from dataclasses import replace
 from pathlib import Path
@@ -53,6 +58,8 @@ from respecd.timeouts import reap, within
 log = structlog.get_logger(__name__)
 
 MODES: tuple[RadarMode, ...] = ("range", "velocity")
+DAMAGE_SUMMARY_S = 60.0  # damaged data after the first warning: one summary line at most this often
+SWITCH_TIMES_KEPT = 100  # the latest reconfiguration times kept in ``switch_times_s``
 _RECOVERABLE = (DriverUnavailableError, DriverIOError, DriverTimeoutError, OSError)  # SerialException is an OSError
 
 
@@ -128,7 +135,10 @@ class IWR6843Driver(Driver):
         self._streaming: ChirpProfile | None = None  # the profile last started; kept while a switch runs
         self._packets_since_switch = 0
         self.outage = OutageLog(self._log)
-        self.switch_times_s: list[float] = []
+        self.switch_times_s: deque[float] = deque(maxlen=SWITCH_TIMES_KEPT)  # oldest first
+        self._damage_seen: int | None = None  # parser.stats.damaged_runs already counted (None: new connection)
+        self._damage_unlogged = 0  # damaged stretches counted since the last radar.damaged_data line
+        self._damage_logged_at: float | None = None  # time.monotonic() of that line (None: never logged)
         self.foreign_packets = 0
         self._stream_mode: RadarMode | None = None  # chirp preference of the frames now arriving
 
@@ -270,7 +280,8 @@ class IWR6843Driver(Driver):
             except (DriverTimeoutError, TimeoutError) as err:
                 if attempt > self.config.cli_retries:
                     raise
-                self._log.warning("radar.cfg_restart", attempt=attempt, error=str(err))
+                # debug: a CLI that stays silent is one outage (radar.lost / the supervisor's line), not a line per try
+                self._log.debug("radar.cfg_restart", attempt=attempt, error=str(err))
 
     async def _cli_call(self, fn: Any, *args: Any, lines: int = 1) -> Any:
         """Run a blocking CLI call in a worker thread, bounded by the per-line timeouts."""
@@ -296,6 +307,7 @@ class IWR6843Driver(Driver):
         except (OSError, TimeoutError) as err:
             raise DriverUnavailableError(f"radar {self.name}: CLI port does not answer: {err}") from err
         self._failed.clear()
+        self._damage_seen = None  # bytes before this connection's first packet: the stream joined midway
         self._reader = DataPortReader(self._ports[1], self.parser, asyncio.get_running_loop(),
                                       self._on_packets, self._on_read_error, name=f"{self.name}-data")
         self._reader.start()
@@ -325,6 +337,7 @@ class IWR6843Driver(Driver):
 
     def _on_packets(self, packets: list[Packet]) -> None:
         """On the loop: packets from the reader thread become Frames."""
+        self._count_damage()
         for packet in packets:
             if not isinstance(packet, RadarPacket):
                 if self.foreign_packets == 0:
@@ -338,8 +351,7 @@ class IWR6843Driver(Driver):
             t = self.clock.now()
             frame = packet.to_frame(t, self._seq)
             frame.meta["mode"] = self._stream_mode
-            self._seq += 1
-            self.health.frame(t)
+            self._seq += 1  # counted in health (frames, rate) by the supervisor's runner as it delivers it
             self.health.drops += packet.gap  # frames the radar numbered but the UART lost
             if not self._queue.put(frame):
                 self.health.drops += 1
@@ -347,6 +359,43 @@ class IWR6843Driver(Driver):
             self._packets_since_switch += 1
             if self._sent is not None and not self.health.paused:
                 self._good = self._sent
+
+    def _count_damage(self) -> None:
+        """Damaged stretches of the stream (a bad packet, garbage between packets) are health errors.
+
+        The first is a warning; later ones are summed into one info line at most every
+        ``DAMAGE_SUMMARY_S`` (``_log_damage``); the totals also end up in ``radar.stopped``.
+        """
+        stats = self.parser.stats
+        runs = stats.damaged_runs
+        if self._damage_seen is None:  # a connection's leading partial packet is not damage
+            self._damage_seen = runs
+            return
+        new = runs - self._damage_seen
+        if new <= 0:
+            return
+        self._damage_seen = runs
+        self.health.errors += new
+        self.health.last_error = f"damaged radar data: {stats.last_error or 'bytes outside any packet'}"
+        if self._damage_logged_at is not None:
+            self._damage_unlogged += new
+            return
+        self._damage_logged_at = time.monotonic()
+        self._log.warning("radar.damaged_data", damaged=new, error=self.health.last_error,
+                          bad_packets=stats.bad_packets, bytes_skipped=stats.bytes_skipped,
+                          hint="bytes lost or garbled on the data UART (cable, baud rate, port shared?)")
+
+    def _log_damage(self) -> None:
+        """The damage since the last radar.damaged_data line, once ``DAMAGE_SUMMARY_S`` has passed."""
+        if not self._damage_unlogged or self._damage_logged_at is None:
+            return
+        since = time.monotonic() - self._damage_logged_at
+        if since < DAMAGE_SUMMARY_S:
+            return
+        stats = self.parser.stats
+        self._log.info("radar.damaged_data", damaged=self._damage_unlogged, over_s=round(since, 1),
+                       error=self.health.last_error, bad_packets=stats.bad_packets, bytes_skipped=stats.bytes_skipped)
+        self._damage_unlogged, self._damage_logged_at = 0, time.monotonic()
 
     def _on_read_error(self, err: BaseException) -> None:
         self.health.error(err)
@@ -378,6 +427,7 @@ class IWR6843Driver(Driver):
             try:
                 await within(self._failed.wait(), 0.25)
             except TimeoutError:
+                self._log_damage()
                 if not self._stalled():
                     continue
                 self._raise_trouble("stall", f"no radar packets for {time.monotonic() - self._last_packet:.1f} s")

@@ -36,7 +36,7 @@ from respecd.messages import Bundle, Decision, Frame, Percept, SensorConfig
 from respecd.queues import DropOldestQueue
 from respecd.sdnotify import Notifier
 from respecd.status import format_line, snapshot
-from respecd.supervisor import driver_runner, supervise
+from respecd.supervisor import driver_backoff, driver_runner, supervise
 from respecd.sync import HealthThresholds, Synchronizer
 from respecd.timeouts import within
 
@@ -245,7 +245,7 @@ class Session:
             driver.announce_changes(partial(self._notice, loop, name))
             self._driver_changed(name)  # anything a driver learned between construction and now
             runner = until_finished(driver, driver_runner(driver, self._sink(name)))
-            self._spawn(f"driver:{name}", supervise(f"driver:{name}", runner))
+            self._spawn(f"driver:{name}", supervise(f"driver:{name}", runner, backoff=driver_backoff(driver)))
         self._spawn("sync", supervise("sync", self.synchronizer.run))
         if self.perception is not None:
             perception = self.perception

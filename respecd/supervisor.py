@@ -42,6 +42,21 @@ class Backoff:
         return min(self.initial_s * (2 ** max(attempt - 1, 0)), self.max_s)
 
 
+def driver_backoff(driver: Driver) -> Backoff:
+    """The restart backoff for a driver: its own ``reconnect_initial_s``/``reconnect_max_s`` where its
+    profile entry has them (the radar's reconnect settings then also cover a board absent at start),
+    else the default."""
+    config = driver.config
+    initial = getattr(config, "reconnect_initial_s", None)
+    cap = getattr(config, "reconnect_max_s", None)
+    if initial is None and cap is None:
+        return Backoff()
+    default = Backoff()
+    initial_s = float(initial) if initial is not None else default.initial_s
+    max_s = float(cap) if cap is not None else default.max_s
+    return Backoff(initial_s=min(initial_s, max_s), max_s=max_s)
+
+
 async def supervise(
     name: str,
     run_once: Callable[[], Awaitable[None]],

@@ -64,6 +64,7 @@ class FakeRadar:
         self.reject_line: Callable[[str], bool] = lambda line: False  # refuse matching lines ("Error -1")
         self.no_done: Callable[[str], bool] = lambda line: False  # echo matching lines, never say Done
         self.data_mode = "frames"  # frames | silent (CLI fine, data port quiet) | garbage (random bytes)
+        self.mangle: Callable[[int, bytes], bytes] = lambda index, frame: frame  # damage the index-th packet sent
         self.commands: list[str] = []
         self.streaming = threading.Event()
         self.mute = threading.Event()  # stop streaming without being told (a hung radar)
@@ -167,6 +168,6 @@ class FakeRadar:
             frame = bytearray(self.frames[index % len(self.frames)])
             if self.renumber:
                 struct.pack_into("<I", frame, 20, number)  # out-of-box header: frameNumber at offset 20
-            self._write(self._data, bytes(frame))
+            self._write(self._data, self.mangle(index, bytes(frame)))
             index, number = index + 1, number + 1
             time.sleep(0.01)

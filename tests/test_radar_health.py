@@ -65,7 +65,7 @@ async def test_a_stall_is_a_stall_however_often_the_controller_switches(radar: F
         driver = IWR6843Driver(_config(radar), MonotonicClock())
         await driver.start()
         try:
-            await _until(lambda: driver.health.frames >= 2)
+            await _until(lambda: driver.parser.stats.packets >= 2)
             radar.data_mode = "silent"  # the CLI still answers every switch
             deadline = time.monotonic() + 10.0  # under load a switch's CLI round trip takes longer
             for request in itertools.cycle((VELOCITY_20, RANGE_10)):
@@ -87,7 +87,7 @@ async def test_a_rejected_reconfiguration_falls_back_to_the_last_good_profile(ra
         driver = IWR6843Driver(_config(radar), MonotonicClock())
         await driver.start()
         try:
-            await _until(lambda: driver.health.frames >= 2)
+            await _until(lambda: driver.parser.stats.packets >= 2)
             with pytest.raises(DriverIOError, match="restoring the last good profile"):
                 await driver.apply(VELOCITY_20)
             await _until(lambda: driver.health.restarts == 1 and not driver.outage.active)
@@ -95,8 +95,8 @@ async def test_a_rejected_reconfiguration_falls_back_to_the_last_good_profile(ra
             resent = radar.since_last("flushCfg")
             assert next(line for line in resent if line.startswith("frameCfg")) == "frameCfg 0 2 32 0 100 1 0"
             assert driver.applied.mode == "range" and driver.applied.rate_hz == 10
-            frames = driver.health.frames
-            await _until(lambda: driver.health.frames > frames + 2)  # streaming again
+            frames = driver.parser.stats.packets
+            await _until(lambda: driver.parser.stats.packets > frames + 2)  # streaming again
             sent = len(radar.commands)
             again = await driver.apply(VELOCITY_20)  # the demo's answer will not change: not re-sent
             assert len(radar.commands) == sent and again.mode == "range"

@@ -119,7 +119,7 @@ class CliPort:
             if verdict is None or verdict == "info":
                 if name in APPENDING:
                     break  # it may have been applied: re-sending would add a second one
-            log.warning("radar.cli_retry", command=command, attempt=attempt, reply=lines[-3:])
+            log.debug("radar.cli_retry", command=command, attempt=attempt, reply=lines[-3:])
         if lines and _garbled(lines):
             raise DriverIOError(f"radar CLI did not recognize {command!r} {self.retries + 1} times: {lines[-1]}")
         heard = f" (heard only {lines[-1]!r})" if lines else ""

@@ -3,7 +3,8 @@
 pyserial has no async API; a dedicated thread blocks in ``read`` with a short timeout so it
 notices ``stop`` quickly, feeds the incremental parser, and hands complete packets to the
 event loop with ``call_soon_threadsafe``. A read error (unplugged board) ends the thread and
-is reported once through ``on_error``; the driver decides about reconnecting.
+is reported once through ``on_error`` (logged at debug: the driver's ``radar.lost`` warning
+carries it); the driver decides about reconnecting.
 """
 
 from __future__ import annotations
@@ -70,7 +71,7 @@ class DataPortReader:
                     self._call(self._on_packets, packets)
         except Exception as err:  # noqa: BLE001 - thread boundary: serial/OS errors end the thread, reported
             if not self._stopping.is_set():
-                log.warning("radar.data_read_failed", error=repr(err))
+                log.debug("radar.data_read_failed", error=repr(err))  # the driver's radar.lost says it
                 self._call(self._on_error, err)
 
     def _call(self, callback: Callable[[Any], None], arg: Any) -> None:

@@ -2,8 +2,10 @@
 
 A radar that is present but misbehaving (a silent or garbage data port, a CLI that rejects
 or never answers) must not write a line per retry: ``OutageLog`` writes one warning when an
-outage begins or its cause changes kind (with the backoff interval it will retry at), the
-retries themselves at debug level, and one info line when packets flow again.
+outage begins, the retries at debug level, and one info line when packets flow again. A
+cause that changes kind later in the outage (ports gone, then back but the CLI silent) is an
+info line; the first reconnect attempt's own cause (an unplug is a read error, then absent
+ports a millisecond later) is the same event seen from the other side and stays at debug.
 """
 
 from __future__ import annotations
@@ -28,17 +30,22 @@ class OutageLog:
         return self.kind is not None
 
     def trouble(self, kind: str, error: str, retry_in_s: float) -> None:
-        """The outage began or an attempt failed; a warning only when the cause changed kind."""
+        """The outage began (a warning) or an attempt failed (debug; info if the cause changed kind)."""
         self.attempts += 1
-        if kind == self.kind:
-            self.log.debug("radar.retry", cause=kind, error=error, attempt=self.attempts, retry_in_s=retry_in_s)
-            return
-        event = "radar.lost" if self.kind is None else "radar.still_lost"
+        fields = {"cause": kind, "error": error, "retry_in_s": round(retry_in_s, 3), "attempt": self.attempts}
         if self.kind is None:
             self.since = time.monotonic()
+            self.kind = kind
+            self.history.append(kind)
+            self.log.warning("radar.lost", **fields)
+            return
+        if kind == self.kind or self.attempts <= 2:  # the first attempt right after the loss: same event
+            self.kind = kind
+            self.log.debug("radar.retry", **fields)
+            return
         self.kind = kind
         self.history.append(kind)
-        self.log.warning(event, cause=kind, error=error, retry_in_s=round(retry_in_s, 3), attempt=self.attempts)
+        self.log.info("radar.still_lost", **fields)
 
     def back(self, **fields: Any) -> None:
         """Packets flow again: one info line with how long it took."""

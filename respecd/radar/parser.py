@@ -121,6 +121,7 @@ class ParserStats(SequenceCounts):
     packets: int = 0  # out-of-box packets decoded
     foreign_packets: int = 0
     bad_packets: int = 0  # magic + header found but the packet was inconsistent
+    damaged_runs: int = 0  # stretches of skipped bytes (a bad packet or garbage) between good packets
     overlong_packets: int = 0  # totalPacketLen reached into the next magic word; cut there
     tlv_counts: Counter[int] = field(default_factory=Counter)
     last_error: str | None = None
@@ -145,6 +146,7 @@ class MmwParser:
         self._wait_until = 0  # stream offset up to which a pending packet extends
         self._scanned = 0  # stream offset up to which the pending packet holds no other magic
         self._pending: tuple[int, Header] | None = None  # (stream offset, checked header) awaiting its tail
+        self._skipping = False  # inside a stretch of skipped bytes (counted once in damaged_runs)
 
     @property
     def pending(self) -> int:
@@ -184,6 +186,8 @@ class MmwParser:
             keep = len(buf) - (len(MAGIC) - 1) if found < 0 else found  # a magic may straddle the end
             skip = max(0, keep - pos)
             self.stats.bytes_skipped += skip
+            if skip:
+                self._skip_run()
             return skip, None
         if len(buf) - pos < _PROBE:
             return 0, None
@@ -197,7 +201,13 @@ class MmwParser:
         self.stats.bad_packets += 1
         self.stats.last_error = why
         self.stats.bytes_skipped += 1
+        self._skip_run()
         return 1, None
+
+    def _skip_run(self) -> None:
+        if not self._skipping:
+            self._skipping = True
+            self.stats.damaged_runs += 1
 
     def _span(self, pos: int, total: int) -> bytes | None | str:
         """The packet's bytes once all have arrived; a string if another magic starts inside."""
@@ -235,6 +245,7 @@ class MmwParser:
             return self._reject(packet)
         gap = self._track("oob", header.frame_number)
         self.stats.packets += 1
+        self._skipping = False
         counts = self.stats.tlv_counts
         for tlv_type, _, _ in packet.tlvs:
             counts[tlv_type] += 1
@@ -262,6 +273,7 @@ class MmwParser:
             return self._reject(walked)
         gap = self._track("pplcount", frame_number)
         self.stats.foreign_packets += 1
+        self._skipping = False
         types = tuple(t for t, _, _ in walked)
         size = self._trim(raw, _tlv_end(walked, _PPL_HEADER_LEN))
         offset = self._base + pos
