@@ -16,14 +16,8 @@ CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 
 
 def test_sigterm_finishes_the_log(tmp_path: Path) -> None:
-    profile = yaml.safe_load((CONFIGS / "sim-rover.yaml").read_text())
-    profile["sensors"] = [s for s in profile["sensors"] if s["name"] in ("rgb", "radar")]
-    profile["sensors"][0]["resolution"] = [640, 360]
-    profile["perception"] = {"enabled": False}
-    config = tmp_path / "profile.yaml"
-    config.write_text(yaml.safe_dump(profile))
     log = tmp_path / "term.mcap"
-    argv = [sys.executable, "-m", "respecd.cli", "--config", str(config), "--record", str(log),
+    argv = [sys.executable, "-m", "respecd.cli", "--config", str(_small_profile(tmp_path)), "--record", str(log),
             "--state-dir", str(tmp_path / "state"), "--log-format", "json"]
     errors = tmp_path / "stderr.txt"
     with open(errors, "wb") as err, subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=err) as proc:
@@ -89,6 +83,7 @@ def test_a_terminal_hangup_stops_like_sigterm(tmp_path: Path) -> None:
 
 
 def _small_profile(tmp_path: Path) -> Path:
+    """The simulated rover with RGB (640x360) and radar only, no detector: a light recording daemon."""
     profile = yaml.safe_load((CONFIGS / "sim-rover.yaml").read_text())
     profile["sensors"] = [s for s in profile["sensors"] if s["name"] in ("rgb", "radar")]
     profile["sensors"][0]["resolution"] = [640, 360]
