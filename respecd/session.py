@@ -42,21 +42,6 @@ from respecd.timeouts import within
 
 log = structlog.get_logger(__name__)
 
-
-def until_finished(driver: Driver, run_once: Callable[[], Awaitable[None]]) -> Callable[[], Awaitable[None]]:
-    """One life of a driver whose normal end is final: a video file or recording without ``loop``
-    that played to its end (``driver.finished``; the driver logs it once at info) stays ended
-    until the session stops, instead of returning to ``supervise``, which would warn
-    ``stage_returned`` and play it again after each backoff."""
-
-    async def run() -> None:
-        await run_once()
-        if driver.finished:
-            log.debug("driver_finished", sensor=driver.name)
-            await asyncio.Event().wait()  # until the session cancels the stage
-
-    return run
-
 T = TypeVar("T")
 SHUTDOWN_TIMEOUT_S = 1.5  # SIGTERM to exit must stay within ~2 s
 CANCEL_GRACE_S = 0.3  # stages normally end at once when cancelled
@@ -244,7 +229,7 @@ class Session:
         for name, driver in self.drivers.items():
             driver.announce_changes(partial(self._notice, loop, name))
             self._driver_changed(name)  # anything a driver learned between construction and now
-            runner = until_finished(driver, driver_runner(driver, self._sink(name)))
+            runner = driver_runner(driver, self._sink(name))
             self._spawn(f"driver:{name}", supervise(f"driver:{name}", runner, backoff=driver_backoff(driver)))
         self._spawn("sync", supervise("sync", self.synchronizer.run))
         if self.perception is not None:

@@ -117,7 +117,11 @@ def _kind(error: BaseException) -> str:
 
 
 def driver_runner(driver: Driver, sink: Callable[[Frame], None]) -> Callable[[], Awaitable[None]]:
-    """One life of a driver: start, stream frames into ``sink``, always stop on the way out."""
+    """One life of a driver: start, stream frames into ``sink``, always stop on the way out.
+
+    A stream that ended by itself (``driver.finished``: a video file or recording without ``loop``
+    played to its end; the driver logs that once) stays ended until cancelled, instead of returning
+    to ``supervise``, which would warn ``stage_returned`` and play it again after each backoff."""
 
     async def run_once() -> None:
         try:
@@ -133,6 +137,9 @@ def driver_runner(driver: Driver, sink: Callable[[Frame], None]) -> Callable[[],
             raise
         finally:
             await _stop_quietly(driver)
+        if driver.finished:
+            log.debug("driver_finished", sensor=driver.name)
+            await asyncio.Event().wait()  # until the session cancels the stage
 
     return run_once
 

@@ -392,14 +392,13 @@ async def test_under_the_daemon_a_file_that_ended_stays_ended(video: Path) -> No
     """The session's runner: one pass, one info line; no stage_returned warning and no replay per backoff."""
     from structlog.testing import capture_logs
 
-    from respecd.session import until_finished
     from respecd.supervisor import Backoff, driver_runner, supervise
 
     driver = UVCDriver(config(video), MonotonicClock())
     frames: list[Frame] = []
     with capture_logs() as logs:
         task = asyncio.create_task(
-            supervise("driver:rgb", until_finished(driver, driver_runner(driver, frames.append)),
+            supervise("driver:rgb", driver_runner(driver, frames.append),
                       backoff=Backoff(initial_s=0.05, max_s=0.05))
         )
         await asyncio.sleep(1.5)
