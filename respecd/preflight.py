@@ -48,7 +48,7 @@ def check_state_dir(path: Path, create: bool = True) -> str | None:
     for the try are removed again, so asking leaves nothing behind."""
     if path.exists() and not path.is_dir():
         return f"{path}: is a file, not a directory; the state directory holds the Q-table"
-    from respecd.cli.outputs import write_error
+    from respecd.outputs import write_error
 
     err = write_error(path, keep=create)
     if err is not None:
@@ -74,7 +74,7 @@ def _learning_state_dir(loaded: LoadedProfile, state_dir: Path | None, policy: s
 def _recording(loaded: LoadedProfile) -> list[str]:
     """A recording profile must be able to open its file at start: the recorder would pause at its
     first write (blaming the disk) and the session would go unrecorded."""
-    from respecd.cli.outputs import recording_problem
+    from respecd.outputs import recording_problem
 
     recording = loaded.model.recording
     if not recording.enabled:

@@ -11,14 +11,14 @@ from pathlib import Path
 
 import pytest
 
-from respecd.cli.outputs import (
+from respecd.errors import InputError
+from respecd.outputs import (
     check_output_dir,
     check_output_file,
     output_dir_problem,
     output_file_problem,
     recording_problem,
 )
-from respecd.errors import InputError
 from respecd.preflight import check_state_dir
 
 REPO = Path(__file__).resolve().parents[1]

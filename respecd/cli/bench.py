@@ -9,8 +9,8 @@ import platform
 from pathlib import Path
 from typing import Any
 
-from respecd.cli.outputs import check_output_file
 from respecd.lab.bench import BENCHES
+from respecd.outputs import check_output_file
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

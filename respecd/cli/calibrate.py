@@ -16,8 +16,8 @@ import sys
 from pathlib import Path
 
 from respecd.cli.args import non_negative_int, positive_int, seed
-from respecd.cli.outputs import check_output_file
 from respecd.errors import InputError
+from respecd.outputs import check_output_file
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

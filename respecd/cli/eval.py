@@ -21,8 +21,8 @@ from pathlib import Path
 from typing import Any
 
 from respecd.cli.args import positive_float, positive_int, resolution, seed, unit_interval
-from respecd.cli.outputs import check_output_dir
 from respecd.errors import InputError
+from respecd.outputs import check_output_dir
 
 EVAL_SCORE_THRESHOLD = 0.01
 

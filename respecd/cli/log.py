@@ -108,7 +108,7 @@ def render_bag(d: dict[str, Any]) -> str:
 def export(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from respecd.cli.outputs import check_output_dir
+    from respecd.outputs import check_output_dir
     from respecd.record.reader import open_log
     from respecd.record.rosbag_out import export_rosbag2
 

@@ -112,7 +112,7 @@ def check_outputs(args: argparse.Namespace) -> None:
     """Every file this run will write can be written, checked before the session starts: a replay's
     report and table are written only at its end, and a recording that cannot open its file loses
     the whole session (it pauses, the daemon runs on unrecorded)."""
-    from respecd.cli.outputs import check_output_file, recording_problem
+    from respecd.outputs import check_output_file, recording_problem
 
     if args.replay:
         report = check_output_file("--report", args.report, example="report.json")  # report_out.write makes folders

@@ -14,9 +14,9 @@ import json
 from importlib import resources
 from pathlib import Path
 
-from respecd.cli.outputs import check_output_file
 from respecd.config import json_schema
 from respecd.errors import InputError
+from respecd.outputs import check_output_file
 
 SCHEMA_NAME = "profile.schema.json"
 HEADER = f"# yaml-language-server: $schema={SCHEMA_NAME}"

@@ -14,8 +14,8 @@ from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
 from respecd.cli.args import non_negative_int, positive_float, positive_int, seed, unit_interval
-from respecd.cli.outputs import check_output_file
 from respecd.errors import InputError
+from respecd.outputs import check_output_file
 
 if TYPE_CHECKING:
     from respecd.lab.detector.augment import AugmentConfig

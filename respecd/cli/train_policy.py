@@ -9,8 +9,8 @@ from pathlib import Path
 from typing import Any
 
 from respecd.cli.args import positive_float, positive_int, seed
-from respecd.cli.outputs import check_output_dir, check_output_file
 from respecd.errors import InputError
+from respecd.outputs import check_output_dir, check_output_file
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

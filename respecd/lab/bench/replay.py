@@ -28,8 +28,8 @@ from pathlib import Path
 from typing import Any
 
 from respecd.cli.args import non_negative_int, positive_float, resolution, seed
-from respecd.cli.outputs import check_output_dir
 from respecd.errors import InputError
+from respecd.outputs import check_output_dir
 
 LOGS = ("rgb-only.mcap", "rover.mcap", "rover-zstd.mcap", "session.mcap")  # what --keep keeps
 

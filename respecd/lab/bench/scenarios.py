@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from respecd.cli.args import positive_float, positive_int, seed
-from respecd.cli.outputs import check_output_dir, check_output_file
+from respecd.outputs import check_output_dir, check_output_file
 
 QUICK_DURATION_S = 4.0
 

@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from respecd.cli.args import non_negative_float, positive_float
-from respecd.cli.outputs import check_output_dir
+from respecd.outputs import check_output_dir
 
 MEDIAN_WINDOW_S = 120.0
 

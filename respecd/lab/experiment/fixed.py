@@ -115,9 +115,9 @@ def seed_list(text: str) -> list[int]:
 def main(argv: list[str] | None = None) -> int:
     import json
 
-    from respecd.cli.outputs import check_output_dir, check_output_file
     from respecd.config import load_profile
     from respecd.lab.experiment.setup import load_detector, make_evaluator
+    from respecd.outputs import check_output_dir, check_output_file
     from respecd.sim.config import SCENARIOS
 
     parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.fixed", description=__doc__,

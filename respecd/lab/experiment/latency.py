@@ -150,8 +150,8 @@ if __name__ == "__main__":
     parser.add_argument("--seed", type=seed, default=500,
                         help="world seed of the frames (default 500: validation)")
     a = parser.parse_args()
-    from respecd.cli.outputs import check_output_file
     from respecd.errors import ConfigError, InputError, report
+    from respecd.outputs import check_output_file
 
     try:  # the file is written after the measurement: a path that cannot take it is refused first
         check_output_file("OUT", a.out, make_parents=False, example="latency.json")

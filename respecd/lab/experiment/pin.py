@@ -107,13 +107,13 @@ def line(label: str, result: PinnedRun, reference: PinnedRun) -> str:
 def main(argv: list[str] | None = None) -> int:
     import json
 
-    from respecd.cli.outputs import check_output_dir, check_output_file
     from respecd.config import load_profile
     from respecd.control.shipped import shipped_table_path
     from respecd.lab.experiment import latency as lat
     from respecd.lab.experiment.compare import rl_controller
     from respecd.lab.experiment.rollout import Piece, Rollout
     from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
+    from respecd.outputs import check_output_dir, check_output_file
     from respecd.sim.config import SCENARIOS
 
     parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.pin", description=__doc__,

@@ -79,8 +79,8 @@ if __name__ == "__main__":
     import json
     import sys
 
-    from respecd.cli.outputs import check_output_dir, check_output_file
     from respecd.errors import InputError
+    from respecd.outputs import check_output_dir, check_output_file
 
     parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.probe", description=probe.__doc__)
     parser.add_argument("--profile", default="builtin:sim-rover")

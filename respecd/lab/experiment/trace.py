@@ -97,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     import json
 
     from respecd.cli import train_policy
-    from respecd.cli.outputs import check_output_file
+    from respecd.outputs import check_output_file
 
     parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.trace", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)

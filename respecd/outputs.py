@@ -21,6 +21,7 @@ from __future__ import annotations
 import errno
 import os
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 from respecd.errors import InputError
@@ -54,22 +55,20 @@ def check_output_file(flag: str, path: str | Path | None, make_parents: bool = T
                       example: str = "NAME") -> Path | None:
     """``output_file_problem`` as the command-line error (``InputError``: ``respecd: FLAG PATH: ...``,
     exit 2); the path as a ``Path``, None for None (the flag was not given)."""
-    if path is None:
-        return None
-    path = Path(path)
-    problem = output_file_problem(path, make_parents, example)
-    if problem:
-        raise InputError(f"{flag} {problem}")
-    return path
+    return _checked(flag, path, lambda p: output_file_problem(p, make_parents, example))
 
 
 def check_output_dir(flag: str, path: str | Path | None, make_parents: bool = True,
                      must_be_new: bool = False) -> Path | None:
     """``output_dir_problem`` as the command-line error (``InputError``, exit 2); None for None."""
+    return _checked(flag, path, lambda p: output_dir_problem(p, make_parents, must_be_new))
+
+
+def _checked(flag: str, path: str | Path | None, problem_of: Callable[[Path], str | None]) -> Path | None:
     if path is None:
         return None
     path = Path(path)
-    problem = output_dir_problem(path, make_parents, must_be_new)
+    problem = problem_of(path)
     if problem:
         raise InputError(f"{flag} {problem}")
     return path
