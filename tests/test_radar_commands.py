@@ -113,6 +113,12 @@ def test_radar_dump_bad_input_exits_2(tmp_path: Path, capsys: pytest.CaptureFixt
     assert "is a directory" in capsys.readouterr().err
 
 
+def test_radar_dump_stops_on_an_endless_stream_without_frames(capsys: pytest.CaptureFixture[str]) -> None:
+    # /dev/zero by mistake was read forever; a real capture shows a frame long before 16 MiB
+    assert main(["radar-dump", "/dev/zero"]) == 2
+    assert "no TI mmWave data-port frames in its first 16777216 bytes" in capsys.readouterr().err
+
+
 def test_bench_drivers_parses_every_real_frame_whole_and_chunked() -> None:
     from respecd.lab.bench import BENCHES
 

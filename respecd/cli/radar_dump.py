@@ -18,6 +18,9 @@ from typing import Any
 from respecd.errors import InputError
 
 CHUNK = 64 * 1024  # read size: the parser is incremental, the file may be large
+# a capture starts with a frame within one frame period's bytes; this much without one is not a capture
+# (and /dev/zero or /dev/urandom given by mistake would otherwise be read forever)
+NO_FRAME_LIMIT = 16 * 1024 * 1024
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -40,17 +43,24 @@ def main(args: argparse.Namespace) -> int:
                 record = _record(packet, args.points and args.json)
                 versions.add(record["version"])
                 print(json.dumps(record) if args.json else _text(record))
+            if parser.stats.bytes_in >= NO_FRAME_LIMIT and not _frames_seen(parser):
+                raise _no_frames(path, parser, "in its first")
     except BrokenPipeError:  # `respecd radar-dump X | head`: stop quietly
         os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
         return 0
-    stats = parser.stats
-    if stats.packets == 0 and stats.foreign_packets == 0:
-        raise InputError(
-            f"{path}: no TI mmWave data-port frames in {stats.bytes_in} bytes "
-            "(expected magic word 02 01 04 03 06 05 08 07 and a valid header)"
-        )
+    if not _frames_seen(parser):
+        raise _no_frames(path, parser, "in")
     print(_summary(parser, versions), file=sys.stderr)
     return 0
+
+
+def _frames_seen(parser: Any) -> bool:
+    return bool(parser.stats.packets or parser.stats.foreign_packets)
+
+
+def _no_frames(path: Path, parser: Any, where: str) -> InputError:
+    return InputError(f"{path}: no TI mmWave data-port frames {where} {parser.stats.bytes_in} bytes "
+                      "(expected magic word 02 01 04 03 06 05 08 07 and a valid header)")
 
 
 def _chunks(path: Path) -> Iterator[bytes]:
