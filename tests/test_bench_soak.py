@@ -46,4 +46,6 @@ def test_a_short_soak_writes_its_samples(tmp_path: Path) -> None:
     assert figures["threads_after_warmup"]["min"] >= 2 and figures["fds_after_warmup"]["max"] > 0
     assert set(figures["queue_depth_max"]) >= {"rgb", "bundles", "percepts"}
     assert all(depth <= 8 for depth in figures["queue_depth_max"].values())  # bounded by the queue sizes
+    heap = figures["heap_mb_after_warmup"]  # glibc here: in use and free-but-held are both read
+    assert heap["in_use"]["median_last_2min"] > 0 and heap["free_held"]["median_last_2min"] >= 0
     structlog.reset_defaults()

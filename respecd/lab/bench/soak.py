@@ -3,8 +3,9 @@
 Ten minutes cannot tell warm-up (allocator pools, caches, the Q-table filling in) from a
 leak, so the figure that matters is the least-squares RSS slope over the samples after
 ``--warmup-min``, in MB/h, with its standard error; 2-minute medians at the start and end
-of that span say the same in plain numbers. Threads and fds must be flat; queue depths
-bounded by their sizes; drops are reported as totals and per hour.
+of that span say the same in plain numbers. RSS cannot tell a leak from freed memory the C
+allocator keeps, so the C heap's bytes in use and free-but-held are sampled too. Threads and
+fds must be flat; queue depths bounded by their sizes; drops are reported as totals and per hour.
 """
 
 from __future__ import annotations
@@ -22,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from respecd.cli.args import non_negative_float, positive_float
+from respecd.heap import heap_mb
 from respecd.outputs import check_output_dir
 
 MEDIAN_WINDOW_S = 120.0
@@ -58,6 +60,7 @@ def sample(session: Any, recorder: Any, t0: float) -> dict[str, Any]:
     return {
         "t_s": round(time.monotonic() - t0, 1),
         "rss_mb": round(status["VmRSS"] / 1024, 1),
+        "heap_mb": heap_mb(),
         "threads": status["Threads"],
         "python_threads": threading.active_count(),
         "fds": len(os.listdir("/proc/self/fd")),
@@ -136,6 +139,22 @@ async def _soak(args: argparse.Namespace, state_dir: Path) -> tuple[list[dict[st
     return rows, extra
 
 
+def heap_medians(rows: list[dict[str, Any]], warmup_s: float) -> dict[str, Any] | None:
+    """C-heap MiB in use and free-but-held, 2-minute medians at the start and end after warm-up.
+
+    Tells a leak (``in_use`` climbs) from the allocator keeping freed blocks (``free_held``
+    climbs while ``in_use`` does not); None where the C library cannot say (not glibc).
+    """
+    kept = [r for r in rows if r["t_s"] >= warmup_s and r.get("heap_mb")]
+    if len(kept) < 2:
+        return None
+    first = [r["heap_mb"] for r in kept if r["t_s"] < kept[0]["t_s"] + MEDIAN_WINDOW_S]
+    last = [r["heap_mb"] for r in kept if r["t_s"] > kept[-1]["t_s"] - MEDIAN_WINDOW_S]
+    return {key: {"median_first_2min": round(float(np.median([h[key] for h in first])), 1),
+                  "median_last_2min": round(float(np.median([h[key] for h in last])), 1)}
+            for key in ("in_use", "free_held")}
+
+
 def summarize(rows: list[dict[str, Any]], warmup_s: float) -> dict[str, Any]:
     """The headline figures of a soak from its samples."""
     hours = max(rows[-1]["t_s"] / 3600.0, 1e-9)
@@ -144,6 +163,7 @@ def summarize(rows: list[dict[str, Any]], warmup_s: float) -> dict[str, Any]:
     after = [r for r in rows if r["t_s"] >= warmup_s] or rows
     return {
         "rss": rss_slope(rows, warmup_s),
+        "heap_mb_after_warmup": heap_medians(rows, warmup_s),
         "rss_mb": {"first": rows[0]["rss_mb"], "max": max(r["rss_mb"] for r in rows), "last": rows[-1]["rss_mb"]},
         "threads_after_warmup": {"min": min(r["threads"] for r in after), "max": max(r["threads"] for r in after)},
         "fds_after_warmup": {"min": min(r["fds"] for r in after), "max": max(r["fds"] for r in after)},
@@ -165,6 +185,7 @@ def summary(figures: dict[str, Any]) -> str:
         f"RSS slope after warm-up: {rss['slope_mb_per_h']} ± {rss.get('slope_stderr_mb_per_h')} MB/h "
         f"({rss['samples']} samples; 2-min medians {rss.get('median_first_2min_mb')} -> "
         f"{rss.get('median_last_2min_mb')} MB)",
+        f"C heap MiB after warm-up (2-min medians, first -> last): {_heap_text(figures['heap_mb_after_warmup'])}",
         f"RSS MB: {figures['rss_mb']}   threads: {figures['threads_after_warmup']}   "
         f"fds: {figures['fds_after_warmup']}   gc objects: {figures['gc_objects_after_warmup']}",
         f"queue depth max: {figures['queue_depth_max']}",
@@ -173,6 +194,12 @@ def summary(figures: dict[str, Any]) -> str:
     if "recorder" in figures:
         lines.append(f"recorder: {figures['recorder']}")
     return "\n".join(lines)
+
+
+def _heap_text(heap: dict[str, Any] | None) -> str:
+    if heap is None:
+        return "not readable here (glibc's mallinfo2 only)"
+    return "   ".join(f"{key} {v['median_first_2min']} -> {v['median_last_2min']}" for key, v in heap.items())
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
