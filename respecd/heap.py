@@ -1,9 +1,9 @@
 """What the C heap holds: bytes in use and bytes freed but kept (glibc's ``mallinfo2``).
 
 RSS alone cannot tell a leak from an allocator that keeps freed memory: torch's CPU tensors
-come from malloc, and an input size the controller picks for the first time leaves holes the
-heap keeps. ``in_use`` growing is a leak; ``free_held`` growing is the allocator, which
-``trim`` hands back to the kernel.
+and the recorder's chunk buffers come from malloc at sizes that change with the sensors'
+settings, and glibc keeps the holes they leave. ``in_use`` growing is a leak; ``free_held``
+growing is the allocator, whose whole free pages ``trim`` hands back to the kernel.
 """
 
 from __future__ import annotations
@@ -32,6 +32,11 @@ def _libc() -> ctypes.CDLL | None:
     libc.malloc_trim.argtypes = [ctypes.c_size_t]
     libc.malloc_trim.restype = ctypes.c_int
     return libc
+
+
+def available() -> bool:
+    """Whether this C library can be read and trimmed (glibc >= 2.33)."""
+    return _libc() is not None
 
 
 def heap_mb() -> dict[str, float] | None:

@@ -27,12 +27,11 @@ from typing import Any, TypeVar
 
 import structlog
 
+from respecd import heap
 from respecd.applied import AppliedConfigs
 from respecd.clock import Clock
 from respecd.drivers import driver_class
 from respecd.drivers.base import Driver, DriverContext
-from respecd.heap import heap_mb
-from respecd.heap import trim as trim_heap
 from respecd.liveness import Liveness, status_text
 from respecd.messages import Bundle, Decision, Frame, Percept, SensorConfig
 from respecd.queues import DropOldestQueue
@@ -244,7 +243,7 @@ class Session:
             controller = self.controller
             self._spawn("controller", supervise("controller", lambda: controller.run(self.percepts)))
         self._spawn("status", self._status_loop())
-        if heap_mb() is not None:
+        if heap.available():
             self._spawn("heap-trim", self._heap_trim_loop())
         if self.notifier.enabled:
             self._spawn("watchdog", self._watchdog_loop())
@@ -395,7 +394,7 @@ class Session:
         while True:
             await self.clock.sleep_until(next_t)
             next_t += HEAP_TRIM_PERIOD_S
-            await asyncio.to_thread(trim_heap)
+            await asyncio.to_thread(heap.trim)
 
     def stalls(self) -> list[str]:
         """Why the watchdog must not be fed (respecd.liveness); empty while alive and supervising."""

@@ -82,16 +82,15 @@ def rss_slope(rows: list[dict[str, Any]], warmup_s: float) -> dict[str, Any]:
     residual = rss - (slope * hours + intercept)
     spread = float(np.sum((hours - hours.mean()) ** 2))
     stderr = float(np.sqrt(np.sum(residual**2) / (len(kept) - 2) / spread)) if spread > 0 else float("nan")
-    first = [r["rss_mb"] for r in kept if r["t_s"] < kept[0]["t_s"] + MEDIAN_WINDOW_S]
-    last = [r["rss_mb"] for r in kept if r["t_s"] > kept[-1]["t_s"] - MEDIAN_WINDOW_S]
+    first, last = _edges(kept)
     return {
         "samples": len(kept),
         "from_s": kept[0]["t_s"],
         "to_s": kept[-1]["t_s"],
         "slope_mb_per_h": round(float(slope), 2),
         "slope_stderr_mb_per_h": round(stderr, 2),
-        "median_first_2min_mb": round(float(np.median(first)), 1),
-        "median_last_2min_mb": round(float(np.median(last)), 1),
+        "median_first_2min_mb": round(float(np.median([r["rss_mb"] for r in first])), 1),
+        "median_last_2min_mb": round(float(np.median([r["rss_mb"] for r in last])), 1),
     }
 
 
@@ -148,11 +147,16 @@ def heap_medians(rows: list[dict[str, Any]], warmup_s: float) -> dict[str, Any] 
     kept = [r for r in rows if r["t_s"] >= warmup_s and r.get("heap_mb")]
     if len(kept) < 2:
         return None
-    first = [r["heap_mb"] for r in kept if r["t_s"] < kept[0]["t_s"] + MEDIAN_WINDOW_S]
-    last = [r["heap_mb"] for r in kept if r["t_s"] > kept[-1]["t_s"] - MEDIAN_WINDOW_S]
-    return {key: {"median_first_2min": round(float(np.median([h[key] for h in first])), 1),
-                  "median_last_2min": round(float(np.median([h[key] for h in last])), 1)}
+    first, last = _edges(kept)
+    return {key: {"median_first_2min": round(float(np.median([r["heap_mb"][key] for r in first])), 1),
+                  "median_last_2min": round(float(np.median([r["heap_mb"][key] for r in last])), 1)}
             for key in ("in_use", "free_held")}
+
+
+def _edges(rows: list[dict[str, Any]]) -> tuple[list[dict[str, Any]], list[dict[str, Any]]]:
+    """The samples of the first and of the last MEDIAN_WINDOW_S of ``rows``."""
+    return ([r for r in rows if r["t_s"] < rows[0]["t_s"] + MEDIAN_WINDOW_S],
+            [r for r in rows if r["t_s"] > rows[-1]["t_s"] - MEDIAN_WINDOW_S])
 
 
 def summarize(rows: list[dict[str, Any]], warmup_s: float) -> dict[str, Any]:
