@@ -386,9 +386,9 @@ class Session:
     async def _heap_trim_loop(self) -> None:
         """Hand freed C-heap pages back to the kernel every HEAP_TRIM_PERIOD_S (respecd.heap).
 
-        With the recorder on, the heap's bytes in use stayed flat over a 24-minute soak while
-        its freed-but-kept pages grew RSS by ~100 MB in 20 minutes; trimming every 30 s kept
-        the 4-minute RSS medians within 700-750 MB, at 9-31 ms of a worker thread each time.
+        Recording for an hour, the heap's bytes in use stayed at 250-260 MB while its freed but
+        kept pages grew RSS by +153 MB/h; trimmed every 30 s, RSS stayed flat (795 -> 778 MB),
+        at 9-31 ms of a worker thread a trim (docs/PERFORMANCE.md "soak").
         """
         next_t = self.clock.now() + HEAP_TRIM_PERIOD_S
         while True:

@@ -1,8 +1,8 @@
 """A long-running session hands the C heap's freed pages back to the kernel.
 
-Torch's buffers for each new mix of input sizes and the recorder's chunk buffers leave freed
-blocks that glibc keeps: over a 24-minute soak the heap's bytes in use stayed flat while RSS
-grew by ~100 MB (docs/PERFORMANCE.md "soak"). The session trims the heap periodically.
+Torch's buffers and the recorder's chunk buffers leave freed blocks that glibc keeps: over an
+hour's recording soak the heap's bytes in use stayed flat while RSS grew by 153 MB/h
+(docs/PERFORMANCE.md "soak"). The session trims the heap periodically.
 """
 
 from __future__ import annotations
