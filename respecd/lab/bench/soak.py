@@ -48,8 +48,8 @@ def _proc_status() -> dict[str, int]:
     return fields
 
 
-def sample(session: Any, recorder: Any, t0: float) -> dict[str, Any]:
-    """One row: process resources, queue depths and cumulative drops, now."""
+def sample(session: Any, recorder: Any, t0: float, heap: dict[str, float] | None) -> dict[str, Any]:
+    """One row: process resources, queue depths and cumulative drops, now; ``heap`` as read by heap_mb."""
     status = _proc_status()
     queues = {name: q for name, q in session.frame_queues.items()}
     queues.update(bundles=session.bundles, percepts=session.percepts)
@@ -60,7 +60,7 @@ def sample(session: Any, recorder: Any, t0: float) -> dict[str, Any]:
     return {
         "t_s": round(time.monotonic() - t0, 1),
         "rss_mb": round(status["VmRSS"] / 1024, 1),
-        "heap_mb": heap_mb(),
+        "heap_mb": heap,
         "threads": status["Threads"],
         "python_threads": threading.active_count(),
         "fds": len(os.listdir("/proc/self/fd")),
@@ -122,7 +122,9 @@ async def _soak(args: argparse.Namespace, state_dir: Path) -> tuple[list[dict[st
 
     async def sampler() -> None:
         while True:
-            rows.append(sample(session, recorder, t0))
+            # mallinfo2 walks every arena under its lock: off the loop, like the daemon's trim
+            heap = await asyncio.to_thread(heap_mb)
+            rows.append(sample(session, recorder, t0, heap))
             await asyncio.sleep(args.every)
 
     cpu0 = time.process_time()
