@@ -3,8 +3,8 @@
 The loop thread keeps time (sensor deadlines, the synchronizer's ticks); the detector, the
 simulator's renders, the recorder and a replay's readers only have to keep up on average.
 On a 2-core machine they and the loop often want the same core: at equal priority the loop
-waits for a time slice whenever it wakes (``respecd bench pipeline`` measured the loop's
-lag p99 at 5.7-6.8 ms against 4.0-5.3 ms with the workers at nice 10, load 3.4-3.8). Linux
+waits for a time slice whenever it wakes (``respecd bench pipeline`` shows it in the loop's
+lag p99; docs/PERFORMANCE.md "pipeline"). Linux
 sets a nice value per thread, so each worker lowers its own on start; elsewhere this does
 nothing. A thread can only lower its priority, never raise it back, so this is for threads
 that do background work for their whole life.

@@ -386,9 +386,9 @@ class Session:
     async def _heap_trim_loop(self) -> None:
         """Hand freed C-heap pages back to the kernel every HEAP_TRIM_PERIOD_S (respecd.heap).
 
-        Recording for an hour, the heap's bytes in use stayed at 250-260 MB while its freed but
-        kept pages grew RSS by +153 MB/h; trimmed every 30 s, RSS stayed flat (795 -> 778 MB),
-        at 9-31 ms of a worker thread a trim (docs/PERFORMANCE.md "soak").
+        Torch's and the recorder's buffers come and go at sizes that change with the sensors' settings,
+        and glibc keeps the pages they free: untrimmed, RSS grows in steps while the bytes in use stay
+        flat. The trim runs in a worker thread; what it saves and costs: docs/PERFORMANCE.md "soak".
         """
         next_t = self.clock.now() + HEAP_TRIM_PERIOD_S
         while True:

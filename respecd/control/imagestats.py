@@ -2,8 +2,8 @@
 
 Every image, whatever its resolution, is read as 36×64 blocks; each block is the mean of a
 4×4 pixel patch at the block's centre (two ``take`` gathers of 144 rows and 256 columns,
-then an exact 4×4 area average: ~0.2–0.4 ms for 720p on the 2-core dev machine, cheap
-enough for the event loop and independent of the resolution the controller chose).
+then an exact 4×4 area average: cheap enough for the event loop and independent of the
+resolution the controller chose; docs/PERFORMANCE.md "controller").
 Averaging the patch divides per-pixel sensor noise by 4, and the fixed grid lets two frames
 of different resolutions be compared block by block.
 

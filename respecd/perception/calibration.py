@@ -2,9 +2,9 @@
 
 The controller changes the RGB resolution online and compares what the detector reports across
 the change: ConfAgg is its state and reward, and the daemon drops every box under one score
-threshold. The net's raw confidences do not mean the same at each size — on builtin:sim-rover's
-validation worlds a box scored 0.15-0.25 is a real person about 30 % of the time at 640x360 and
-15 % at 1280x720, so at 640x360 most people found behind a curtain never reach the threshold.
+threshold. The net's raw confidences do not mean the same at each size — a low-scored box is a
+real person far more often at 640x360 than at 1280x720 (docs/PERCEPTION.md "Confidence calibration"),
+so at 640x360 most people found behind a curtain never reach the threshold.
 Platt scaling maps each size's confidence ``p`` to ``sigmoid(a * logit(p) + b)`` with ``(a, b)``
 fitted on matched validation boxes (``respecd calibrate``). The map is monotone, so the ranking
 at one size, and with it mAP at that size, is unchanged; what moves is which boxes pass the

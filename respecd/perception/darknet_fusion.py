@@ -179,8 +179,8 @@ class DarknetFusionNet(nn.Module):
         return value
 
     def fold_batchnorm(self) -> None:
-        """For inference (the detector does it): batch norms folded into their convolutions, ~25 % less CPU
-        time per forward here; outputs equal to float precision. The net cannot be trained or saved after."""
+        """For inference (the detector does it): batch norms folded into their convolutions, one pass over
+        each feature map less; outputs equal to float precision. The net cannot be trained or saved after."""
         for module in self.modules():
             if isinstance(module, darknet.ConvLayer):
                 module.fold_batchnorm()

@@ -2,10 +2,9 @@
 
 At inference a batch norm is a fixed per-channel affine map, so it can be merged into the
 convolution before it: one pass over the feature map less per layer. On CPU, channels-last
-memory (NHWC) lets oneDNN run the convolutions without reordering every tensor. Together
-they take builtin:sim-rover's forward at 640x360 from 55.6 to 48.2 ms of one core
-(docs/PERFORMANCE.md). Both are for inference only: a folded net has no batch norms left
-to train, and the detector never saves it.
+memory (NHWC) lets oneDNN run the convolutions without reordering every tensor (what the
+two save: docs/PERFORMANCE.md "perception"). Both are for inference only: a folded net has
+no batch norms left to train, and the detector never saves it.
 """
 
 from __future__ import annotations

@@ -163,7 +163,7 @@ _COLORMAPS = {"inferno": cv2.COLORMAP_INFERNO}
 
 @cache
 def _colormap_lut(name: str) -> np.ndarray:
-    """(256, 3) BGR of OpenCV's colormap: indexing it is ~5x cheaper than applyColorMap per frame."""
+    """(256, 3) BGR of OpenCV's colormap: indexing it is cheaper than applyColorMap per frame."""
     ramp = np.arange(256, dtype=np.uint8).reshape(256, 1)
     return cv2.applyColorMap(ramp, _COLORMAPS[name]).reshape(256, 3)
 

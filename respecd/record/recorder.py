@@ -6,8 +6,8 @@ protobuf, JSON) and hands it to its sinks: the MCAP segment writer and/or the Fo
 live view. When the worker falls behind, the oldest message is dropped and counted
 (``dropped``, shown in the status line): a recorder must never slow the robot down.
 The worker wakes once per ``batch_s`` and encodes what queued in one burst: woken per
-message it starts every encode with cold caches, 1.35-1.58x the CPU on the simulated
-rover (docs/PERFORMANCE.md).
+message it would start every encode with cold caches, which costs more CPU on the
+simulated rover (docs/PERFORMANCE.md "record and replay").
 """
 
 from __future__ import annotations

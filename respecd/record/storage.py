@@ -1,8 +1,9 @@
 """Disk space for recordings: the free-space floor and the retention cap.
 
-A rover records for days onto a disk it shares with its OS; at 3-6 MB/s a 64 GB card is
-full in hours. Recording therefore stops short of a full disk (``min_free_mib``: the file
-is finished cleanly while there is still room for its summary) and, when the profile allows
+A rover records for days onto a disk it shares with its OS, and at the rover's data rate
+(docs/PERFORMANCE.md "recorder data rate") a card fills in hours. Recording therefore stops
+short of a full disk (``min_free_mib``: the file is finished cleanly while there is still
+room for its summary) and, when the profile allows
 it, makes room by deleting the oldest recordings first — whole sessions, oldest session
 first, never a segment still being written.
 

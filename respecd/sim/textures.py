@@ -22,7 +22,7 @@ DEPTH_MIN_MM, DEPTH_MAX_MM = 300, 3000  # D435i valid range as the paper uses it
 
 @functools.cache
 def noise_bank() -> np.ndarray:
-    """uint8 (720 + pad, 1280 + pad, 3) Gaussian noise, fixed seed, generated once (~50 ms)."""
+    """uint8 (720 + pad, 1280 + pad, 3) Gaussian noise, fixed seed, generated once and cached."""
     rng = np.random.default_rng(0x5EED)
     bank = rng.normal(128.0, NOISE_STD, size=(720 + NOISE_PAD, 1280 + NOISE_PAD, 3))
     return np.clip(bank, 0, 255).astype(np.uint8)

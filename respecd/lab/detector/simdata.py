@@ -10,7 +10,7 @@
   (320x240 is the Lepton's 160x120 upscaled) and the radar preset and rate; an evaluation
   frame uses the profile's defaults (RGB 30 Hz, thermal 160x120 at 9 Hz, radar range at 10 Hz).
 
-A frame costs a few to 40 ms to render, so training and evaluation render what they need
+Rendering is cheap beside a training step, so training and evaluation render what they need
 at any RGB resolution instead of holding a pool in memory.
 """
 

@@ -93,8 +93,8 @@ class EMA:
     def update(self, model: nn.Module) -> None:
         """One step of the average toward ``model``. Both state dicts are read afresh (under a millisecond):
         moving a net (``.to(memory_format=...)``) gives its parameters new storage, so pairs kept from an
-        earlier call could be stale. The floating-point tensors move in one foreach lerp (3.2-3.5 ms a step against
-        6.0-6.6 for a multiply and an add per tensor, docs/PERFORMANCE.md); integer counters are copied."""
+        earlier call could be stale. The floating-point tensors move in one foreach lerp, cheaper than a multiply
+        and an add per tensor; integer counters are copied."""
         self.updates += 1
         d = self.decay * (1 - math.exp(-self.updates / self.tau))
         averages, sources = [], []
@@ -330,7 +330,7 @@ def train_step(model: checkpoint.Net, opt: torch.optim.Optimizer, ema: EMA, batc
 
 def to_training_layout(model: checkpoint.Net) -> checkpoint.Net:
     """The CSP net trains in channels-last memory (NHWC): oneDNN's CPU convolutions then need no
-    reordering, and a bf16 step took 0.89x the time (docs/PERFORMANCE.md). The Darknet nets (depthwise
+    reordering, which makes a training step cheaper (docs/PERFORMANCE.md). The Darknet nets (depthwise
     convolutions, not measured) stay as built."""
     return model.to(memory_format=_memory_format(model))  # type: ignore[call-overload]  # torch's stub lacks it
 
