@@ -8,10 +8,13 @@ them for a person at a terminal and for systemd's STATUS=.
 from __future__ import annotations
 
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from respecd.drivers.base import Driver
 from respecd.messages import Decision, Percept, SensorConfig, SyncStats
+
+if TYPE_CHECKING:
+    from respecd.pipeline import Pipeline
 
 MODALITY_ABBREV = {"rgb": "rgb", "thermal": "th", "radar": "rad", "depth": "dep", "imu": "imu"}
 
@@ -74,6 +77,24 @@ def snapshot(
         fields["action"] = action_name if action_name is not None else decision.action
         fields["reward"] = round(decision.reward, 3)
         fields["epsilon"] = round(decision.epsilon, 3)
+    return fields
+
+
+def pipeline_fields(pipeline: Pipeline, recorder_dropped: int = 0,
+                    recording: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """``snapshot`` of a running pipeline, with the recorder's drops and state when there is one."""
+    drops = {name: q.dropped for name, q in pipeline.frame_queues.items() if q.dropped}
+    drops["bundles"] = pipeline.bundles.dropped
+    if recorder_dropped:
+        drops["recorder"] = recorder_dropped
+    controller = pipeline.controller
+    decision = controller.last if controller is not None else None
+    action_name = controller.describe_action(decision.action) if controller is not None and decision else None
+    fields = snapshot(pipeline.clock.now(), pipeline.drivers, pipeline.synchronizer.last_stats, drops,
+                      pipeline.perception.last if pipeline.perception is not None else None, decision,
+                      action_name, pipeline.applied)
+    if recording is not None:
+        fields["recording"] = recording
     return fields
 
 

@@ -47,4 +47,4 @@ async def test_a_frame_size_the_camera_reports_is_published(shared_data: Path, t
     assert heard[0].resolution == (160, 120) and not any("upscaled" in n for n in heard[0].notes)
     # the camera's frames say 80x60, so the 160x120 it now delivers is upscaled, and everyone hears it
     assert any("upscaled from the native" in n for n in heard[-1].notes)
-    assert session.applied["thermal"] == session.drivers["thermal"].applied == heard[-1]
+    assert session.pipeline.applied["thermal"] == session.pipeline.drivers["thermal"].applied == heard[-1]

@@ -164,29 +164,14 @@ def status_printer(console: bool) -> Any:
     return sink
 
 
-def make_recorder(profile: Any, path: str | None, clock: Any, foxglove: str | None = None) -> Any:
-    """The recorder when a log (command line or profile) or the live view is asked for."""
-    to_file = path is not None or profile.recording.enabled
-    if not to_file and foxglove is None:
-        return None
-    from respecd.record.recorder import Recorder
-
-    live = None
-    if foxglove is not None:
-        from respecd.record.live import LiveView, parse_address
-
-        live = LiveView(*parse_address(foxglove), name=f"respecd {profile.name}")
-    config = profile.recording
-    if path is not None:
-        config = config.model_copy(update={"enabled": True, "path": path})
-    return Recorder(config, profile, clock, live=live, to_file=to_file)
-
-
 async def run_live(profile: Any, args: argparse.Namespace, signals: Any, console: bool, state_dir: Any) -> int:
     from respecd.clock import MonotonicClock
+    from respecd.daemon import Daemon
     from respecd.drivers.base import DriverContext
+    from respecd.record import make_recorder
     from respecd.sdnotify import Notifier
     from respecd.session import Session
+    from respecd.terminal import TERMINAL
 
     stop = signals.bind()
     clock = MonotonicClock()
@@ -195,17 +180,12 @@ async def run_live(profile: Any, args: argparse.Namespace, signals: Any, console
     context = DriverContext(seed=args.seed or 0, simulation=getattr(profile, "simulation", None))
     recorder = make_recorder(profile, args.record, clock, getattr(args, "foxglove", None))
     session = Session(profile, clock, context, policy=args.policy, state_dir=state_dir,
-                      observers=[recorder] if recorder is not None else [],
-                      status_sink=status_printer(console), notifier=Notifier())
-    from respecd.native import StderrRelay
-    from respecd.terminal import TERMINAL
-
-    relay = StderrRelay()  # OpenCV's own warnings become log events
-    relay.start()
+                      observers=[recorder] if recorder is not None else [])
+    daemon = Daemon(session, notifier=Notifier(), status_sink=status_printer(console), recorder=recorder,
+                    relay_stderr=True)  # OpenCV's own warnings become log events
     try:
-        await session.run(duration=args.duration, stop=stop)
+        await daemon.run(duration=args.duration, stop=stop)
     finally:
-        relay.stop()
         TERMINAL.close()
     if session.lingering:
         log.warning("abandoning_inflight_work", tasks=session.lingering)

@@ -140,6 +140,12 @@ class Collector:
         self._current: dict[str, SensorConfig] = {}
         self._changed: dict[str, SensorConfig] = {}  # config messages since the last tick
 
+    def start(self) -> None:
+        """Nothing to open: everything is gathered in memory."""
+
+    def close(self) -> None:
+        """Nothing to close: the report is built from what was gathered."""
+
     def on_frame(self, sensor_name: str, frame: Frame) -> None:
         self.frames[sensor_name] += 1
         self.first_t = frame.t if self.first_t is None else min(self.first_t, frame.t)

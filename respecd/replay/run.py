@@ -177,8 +177,7 @@ class _Replay:
         decode_ahead = not self.profile.perception.enabled and self.profile.controller.enabled
         context = DriverContext(seed=self.seed, replay=self.session, decode_ahead=decode_ahead)
         session = Session(self.profile, clock, context,
-                          tables=self.tables, observers=[self.collector], latency_model=model,
-                          status_sink=lambda fields, line: log.debug("status", line=line))
+                          tables=self.tables, observers=[self.collector], latency_model=model)
         session.hooks.inference.append(self.collector.measured)
         if self.observe is not None:
             self.observe(session)
@@ -196,7 +195,8 @@ class _Replay:
         end = min(max(clock.now(), self.t0), self.t0 + self.duration)
         if stop.is_set():
             log.info("replay.stopped", replayed_s=round(end - self.t0, 3), of_s=round(self.duration, 3))
-        describe = getattr(session.controller, "describe_action", None)
+        controller = session.pipeline.controller
+        describe = controller.describe_action if controller is not None else None
         power = {s.name: s.power for s in self.profile.sensors}
         entry = rpt.summarize(self.collector, self.t0, end, power, describe)
         entry["wall_s"] = round(wall, 3)  # the replay loop alone: imports and weight loading excluded

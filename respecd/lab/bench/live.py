@@ -87,9 +87,10 @@ def _profile() -> Any:
 
 
 async def _run(seconds: float, port: int | None) -> dict[str, Any]:
-    from respecd.cli.run import make_recorder
     from respecd.clock import MonotonicClock
+    from respecd.daemon import Daemon
     from respecd.drivers.base import DriverContext
+    from respecd.record import make_recorder
     from respecd.session import Session
 
     profile = _profile()
@@ -98,7 +99,7 @@ async def _run(seconds: float, port: int | None) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as state_dir:
         session = Session(profile, clock, DriverContext(seed=0, simulation=profile.simulation),
                           state_dir=Path(state_dir), observers=[recorder] if recorder else [])
-        jitter, lag, cpu_s, wall_s = await timed_run(session, seconds)
+        jitter, lag, cpu_s, wall_s = await timed_run(Daemon(session, recorder=recorder), seconds)
     warm_lag, warm_jitter = lag[len(lag) // 10 :], np.abs(jitter[len(jitter) // 10 :])
     return {
         "loop_lag_ms_p50": round(float(np.percentile(warm_lag, 50)) * 1000, 3),

@@ -53,16 +53,16 @@ async def _lag_probe(samples: list[float]) -> None:
         samples.append(loop.time() - due)
 
 
-async def timed_run(session: Any, seconds: float) -> tuple[list[float], list[float], float, float]:
-    """Run ``session`` for ``seconds`` beside a loop-lag probe: (tick lateness s, probe lateness s,
-    process CPU s, wall s)."""
+async def timed_run(daemon: Any, seconds: float) -> tuple[list[float], list[float], float, float]:
+    """Run ``daemon`` (a ``respecd.daemon.Daemon``: the session with the live daemon's chores) for
+    ``seconds`` beside a loop-lag probe: (tick lateness s, probe lateness s, process CPU s, wall s)."""
     jitter: list[float] = []
     lag: list[float] = []
-    session.hooks.tick.append(lambda scheduled, actual: jitter.append(actual - scheduled))
+    daemon.session.hooks.tick.append(lambda scheduled, actual: jitter.append(actual - scheduled))
     probe = asyncio.create_task(_lag_probe(lag), name="lag-probe")
     cpu0, wall0 = time.process_time(), time.perf_counter()
     try:
-        await session.run(duration=seconds)
+        await daemon.run(duration=seconds)
     finally:
         probe.cancel()
         await asyncio.gather(probe, return_exceptions=True)
@@ -74,21 +74,23 @@ async def _measure(profile: Any, seconds: float) -> dict[str, Any]:
     from pathlib import Path
 
     from respecd.clock import MonotonicClock
+    from respecd.daemon import Daemon
     from respecd.drivers.base import DriverContext
     from respecd.session import Session
 
     clock = MonotonicClock()
     context = DriverContext(seed=0, simulation=getattr(profile, "simulation", None))
     with tempfile.TemporaryDirectory() as state_dir:
-        daemon = Session(profile, clock, context, state_dir=Path(state_dir))
-        jitter, lag, cpu_s, wall_s = await timed_run(daemon, seconds)
-    frames = {n: d.health.frames for n, d in daemon.drivers.items()}
-    dropped = sum(q.dropped for q in daemon.frame_queues.values()) + daemon.bundles.dropped
+        session = Session(profile, clock, context, state_dir=Path(state_dir))
+        jitter, lag, cpu_s, wall_s = await timed_run(Daemon(session), seconds)
+    pipeline = session.pipeline
+    frames = {n: d.health.frames for n, d in pipeline.drivers.items()}
+    dropped = sum(q.dropped for q in pipeline.frame_queues.values()) + pipeline.bundles.dropped
     warm = jitter[len(jitter) // 10 :]  # skip start-up ticks (imports, first renders)
     return {
         "seconds": round(wall_s, 2),
-        "sync_rate_hz": round(daemon.synchronizer.current_rate(), 1),
-        "bundles": daemon.synchronizer.bundles,
+        "sync_rate_hz": round(pipeline.synchronizer.current_rate(), 1),
+        "bundles": pipeline.synchronizer.bundles,
         "frames": frames,
         "sync_jitter_ms_p50": round(float(np.percentile(np.abs(warm), 50)) * 1000, 3),
         "sync_jitter_ms_p99": round(float(np.percentile(np.abs(warm), 99)) * 1000, 3),

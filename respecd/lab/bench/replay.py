@@ -217,8 +217,7 @@ def _record_simulated(profile: Any, path: Path, args: argparse.Namespace) -> Pat
         recorder = Recorder(config, quiet, clock)
         with tempfile.TemporaryDirectory() as state:
             context = DriverContext(seed=args.seed, simulation=getattr(quiet, "simulation", None))
-            session = Session(quiet, clock, context, state_dir=Path(state), observers=[recorder],
-                              status_sink=lambda fields, line: None)
+            session = Session(quiet, clock, context, state_dir=Path(state), observers=[recorder])
             task = asyncio.create_task(session.run(duration=args.seconds))
             await clock.run(args.seconds)
             await task

@@ -48,13 +48,13 @@ def _proc_status() -> dict[str, int]:
     return fields
 
 
-def sample(session: Any, recorder: Any, t0: float, heap: dict[str, float] | None) -> dict[str, Any]:
+def sample(pipeline: Any, recorder: Any, t0: float, heap: dict[str, float] | None) -> dict[str, Any]:
     """One row: process resources, queue depths and cumulative drops, now; ``heap`` as read by heap_mb."""
     status = _proc_status()
-    queues = {name: q for name, q in session.frame_queues.items()}
-    queues.update(bundles=session.bundles, percepts=session.percepts)
+    queues = {name: q for name, q in pipeline.frame_queues.items()}
+    queues.update(bundles=pipeline.bundles, percepts=pipeline.percepts)
     drops = {name: q.dropped for name, q in queues.items()}
-    drops["drivers"] = sum(d.health.drops for d in session.drivers.values())
+    drops["drivers"] = sum(d.health.drops for d in pipeline.drivers.values())
     if recorder is not None:
         drops["recorder"] = recorder.dropped
     return {
@@ -109,6 +109,7 @@ def _recorder(profile: Any, directory: str | None, clock: Any) -> Any:
 async def _soak(args: argparse.Namespace, state_dir: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     from respecd.clock import MonotonicClock
     from respecd.config import load_profile
+    from respecd.daemon import Daemon
     from respecd.drivers.base import DriverContext
     from respecd.session import Session
 
@@ -124,13 +125,13 @@ async def _soak(args: argparse.Namespace, state_dir: Path) -> tuple[list[dict[st
         while True:
             # mallinfo2 walks every arena under its lock: off the loop, like the daemon's trim
             heap = await asyncio.to_thread(heap_mb)
-            rows.append(sample(session, recorder, t0, heap))
+            rows.append(sample(session.pipeline, recorder, t0, heap))
             await asyncio.sleep(args.every)
 
     cpu0 = time.process_time()
     task = asyncio.create_task(sampler(), name="soak-sampler")
     try:
-        await session.run(duration=args.minutes * 60)
+        await Daemon(session, recorder=recorder).run(duration=args.minutes * 60)  # as the daemon: heap trim included
     finally:
         task.cancel()
         await asyncio.gather(task, return_exceptions=True)
