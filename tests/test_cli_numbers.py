@@ -1,7 +1,8 @@
 """Numeric flags are range-checked while the command line is parsed: a bad value is exit 2
 with the flag's name and what was expected, no traceback, before a checkpoint loads, a
 simulation starts or a benchmark runs (they used to reach numpy, torch or OpenCV, or be
-silently replaced)."""
+silently replaced). The parser is the one the console script builds; the script itself is
+started for a few of them (the full tier)."""
 
 from __future__ import annotations
 
@@ -15,8 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from respecd.cli import build_parser
-from respecd.cli.args import (
+from respecd.argtypes import (
     non_negative_float,
     non_negative_int,
     port_number,
@@ -25,83 +25,97 @@ from respecd.cli.args import (
     seed,
     unit_interval,
 )
+from respecd.cli import build_parser
 from respecd.lab.bench.controller import rate_levels
 from respecd.lab.bench.live import first_port
 
 REPO = Path(__file__).resolve().parents[1]
 TABLE = str(REPO / "respecd" / "control" / "tables" / "default-qtable.npz")
 LATENCY = str(REPO / "docs" / "reference-latency.json")
-CLI = "respecd.cli"
-PROBE = "respecd.lab.experiment.probe"
 T = "{tmp}"  # replaced by the test's own folder: nothing is written into the checkout
 
-# (module, arguments, the flag the error must name). Without the check each of these ran
-# (minutes of training, evaluation or benchmarking, or a daemon that exits 0 at once) or
-# ended in a traceback.
-BAD: list[tuple[str, list[str], str]] = [
-    (CLI, ["--seed", "-1", "--state-dir", T], "--seed"),
-    (CLI, ["--duration", "-5", "--state-dir", T], "--duration"),
-    (CLI, ["--duration", "0", "--state-dir", T], "--duration"),
-    (CLI, ["--duration", "nan", "--state-dir", T], "--duration"),
-    (CLI, ["--duration", "inf", "--state-dir", T], "--duration"),
-    (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--seed", "-1"], "--seed"),
-    (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--seed", str(2**64)], "--seed"),  # torch overflowed
-    (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--threads", "0"], "--threads"),
-    (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--lr", "-1"], "--lr"),
-    (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--lr", "nan"], "--lr"),
-    (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--keep-cut", "5"], "--keep-cut"),
-    (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--pseudo-rgb", "-0.5"], "--pseudo-rgb"),
-    (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--batch", "0"], "--batch"),
-    (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--eval-frames", "-1"], "--eval-frames"),
-    (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--val-limit", "0"], "--val-limit"),
-    (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--scale", "0"], "--scale"),
-    (CLI, ["train", "--data", "sim", "--out", T + "/t.pt", "--radar-alone", "nan"], "--radar-alone"),
-    (CLI, ["train-policy", "--state-dir", T, "--seed", "-1"], "--seed"),
-    (CLI, ["train-policy", "--state-dir", T, "--max-minutes", "-1"], "--max-minutes"),
-    (CLI, ["train-policy", "--state-dir", T, "--samples-per-s", "nan"], "--samples-per-s"),
-    (CLI, ["train-policy", "--state-dir", T, "--max-s", "inf"], "--max-s"),
-    (CLI, ["train-policy", "--state-dir", T, "--latency-repeats", "0"], "--latency-repeats"),
-    (CLI, ["eval", "--out", T, "--seed", "-1"], "--seed"),
-    (CLI, ["eval", "--out", T, "--threads", "0"], "--threads"),
-    (CLI, ["eval", "--out", T, "--frames", "-1"], "--frames"),
-    (CLI, ["eval", "--out", T, "--frames", "0"], "--frames"),
-    (CLI, ["eval", "--out", T, "--attribution-threshold", "2"], "--attribution-threshold"),
-    (CLI, ["eval", "--out", T, "--scale", "-1"], "--scale"),
-    (CLI, ["calibrate", "--weights", "builtin:sim-rover", "--out", T + "/c.pt", "--threads", "0"], "--threads"),
-    (CLI, ["policy", "show", TABLE, "--limit", "-3"], "--limit"),
-    (CLI, ["radar-profile", "--fps", "nan"], "--fps"),
-    (CLI, ["bench", "pipeline", "--seconds", "0"], "--seconds"),
-    (CLI, ["bench", "pipeline", "--seconds", "-1"], "--seconds"),
-    (CLI, ["bench", "sim", "--frames", "0"], "--frames"),
-    (CLI, ["bench", "sim", "--seconds", "-1"], "--seconds"),
-    (CLI, ["bench", "live", "--seconds", "-1"], "--seconds"),
-    (CLI, ["bench", "live", "--port", "99999"], "--port"),
-    (CLI, ["bench", "live", "--port", "65535"], "--port"),
-    (CLI, ["bench", "inference", "--repeats", "0"], "--repeats"),
-    (CLI, ["bench", "controller", "--seed", "-1"], "--seed"),
-    (CLI, ["bench", "controller", "--steps", "-5"], "--steps"),
-    (CLI, ["bench", "controller", "--percepts", "-1"], "--percepts"),
-    (CLI, ["bench", "controller", "--rate-levels", "0"], "--rate-levels"),
-    (CLI, ["bench", "scenarios", "--duration", "-1"], "--duration"),
-    (CLI, ["bench", "scenarios", "--seed", "-1"], "--seed"),
-    (CLI, ["bench", "soak", "--minutes", "-1"], "--minutes"),
-    (CLI, ["bench", "soak", "--every", "0"], "--every"),
-    (CLI, ["bench", "replay", "--seconds", "0"], "--seconds"),
-    (CLI, ["bench", "peers", "--sync-seconds", "nan"], "--sync-seconds"),
-    (CLI, ["bench", "training", "--seed", "-1"], "--seed"),
-    (PROBE, ["--latency", LATENCY, "--worlds", "0"], "--worlds"),
+# (arguments, the flag the error must name). Without the check each of these ran (minutes of
+# training, evaluation or benchmarking, or a daemon that exits 0 at once) or ended in a traceback.
+BAD: list[tuple[list[str], str]] = [
+    (["--seed", "-1", "--state-dir", T], "--seed"),
+    (["--duration", "-5", "--state-dir", T], "--duration"),
+    (["--duration", "0", "--state-dir", T], "--duration"),
+    (["--duration", "nan", "--state-dir", T], "--duration"),
+    (["--duration", "inf", "--state-dir", T], "--duration"),
+    (["train", "--data", "sim", "--out", T + "/t.pt", "--seed", "-1"], "--seed"),
+    (["train", "--data", "sim", "--out", T + "/t.pt", "--seed", str(2**64)], "--seed"),  # torch overflowed
+    (["train", "--data", "sim", "--out", T + "/t.pt", "--threads", "0"], "--threads"),
+    (["train", "--data", "sim", "--out", T + "/t.pt", "--lr", "-1"], "--lr"),
+    (["train", "--data", "sim", "--out", T + "/t.pt", "--lr", "nan"], "--lr"),
+    (["train", "--data", "sim", "--out", T + "/t.pt", "--keep-cut", "5"], "--keep-cut"),
+    (["train", "--data", "sim", "--out", T + "/t.pt", "--pseudo-rgb", "-0.5"], "--pseudo-rgb"),
+    (["train", "--data", "sim", "--out", T + "/t.pt", "--batch", "0"], "--batch"),
+    (["train", "--data", "sim", "--out", T + "/t.pt", "--eval-frames", "-1"], "--eval-frames"),
+    (["train", "--data", "sim", "--out", T + "/t.pt", "--val-limit", "0"], "--val-limit"),
+    (["train", "--data", "sim", "--out", T + "/t.pt", "--scale", "0"], "--scale"),
+    (["train", "--data", "sim", "--out", T + "/t.pt", "--radar-alone", "nan"], "--radar-alone"),
+    (["train-policy", "--state-dir", T, "--seed", "-1"], "--seed"),
+    (["train-policy", "--state-dir", T, "--max-minutes", "-1"], "--max-minutes"),
+    (["train-policy", "--state-dir", T, "--samples-per-s", "nan"], "--samples-per-s"),
+    (["train-policy", "--state-dir", T, "--max-s", "inf"], "--max-s"),
+    (["train-policy", "--state-dir", T, "--latency-repeats", "0"], "--latency-repeats"),
+    (["eval", "--out", T, "--seed", "-1"], "--seed"),
+    (["eval", "--out", T, "--threads", "0"], "--threads"),
+    (["eval", "--out", T, "--frames", "-1"], "--frames"),
+    (["eval", "--out", T, "--frames", "0"], "--frames"),
+    (["eval", "--out", T, "--attribution-threshold", "2"], "--attribution-threshold"),
+    (["eval", "--out", T, "--scale", "-1"], "--scale"),
+    (["calibrate", "--weights", "builtin:sim-rover", "--out", T + "/c.pt", "--threads", "0"], "--threads"),
+    (["policy", "show", TABLE, "--limit", "-3"], "--limit"),
+    (["radar-profile", "--fps", "nan"], "--fps"),
+    (["bench", "pipeline", "--seconds", "0"], "--seconds"),
+    (["bench", "pipeline", "--seconds", "-1"], "--seconds"),
+    (["bench", "sim", "--frames", "0"], "--frames"),
+    (["bench", "sim", "--seconds", "-1"], "--seconds"),
+    (["bench", "live", "--seconds", "-1"], "--seconds"),
+    (["bench", "live", "--port", "99999"], "--port"),
+    (["bench", "live", "--port", "65535"], "--port"),
+    (["bench", "inference", "--repeats", "0"], "--repeats"),
+    (["bench", "controller", "--seed", "-1"], "--seed"),
+    (["bench", "controller", "--steps", "-5"], "--steps"),
+    (["bench", "controller", "--percepts", "-1"], "--percepts"),
+    (["bench", "controller", "--rate-levels", "0"], "--rate-levels"),
+    (["bench", "scenarios", "--duration", "-1"], "--duration"),
+    (["bench", "scenarios", "--seed", "-1"], "--seed"),
+    (["bench", "soak", "--minutes", "-1"], "--minutes"),
+    (["bench", "soak", "--every", "0"], "--every"),
+    (["bench", "replay", "--seconds", "0"], "--seconds"),
+    (["bench", "peers", "--sync-seconds", "nan"], "--sync-seconds"),
+    (["bench", "training", "--seed", "-1"], "--seed"),
+    (["experiment", "probe", "--latency", LATENCY, "--worlds", "0"], "--worlds"),
+    (["experiment", "fixed", "good-light-static", "rgb 640x360@1", "--seeds", "1,1"], "--seeds"),
+    (["experiment", "latency", T + "/l.json", "--repeats", "0"], "--repeats"),
 ]
 
 
-@pytest.mark.parametrize(("module", "argv", "flag"), BAD, ids=[" ".join(a) for _, a, _ in BAD])
-def test_a_bad_number_is_refused_up_front(module: str, argv: list[str], flag: str, tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def parser() -> argparse.ArgumentParser:
+    return build_parser()
+
+
+@pytest.mark.parametrize(("argv", "flag"), BAD, ids=[" ".join(a) for a, _ in BAD])
+def test_a_bad_number_is_refused_while_parsing(argv: list[str], flag: str, parser: argparse.ArgumentParser,
+                                               tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as exited:
+        parser.parse_args([a.replace(T, str(tmp_path)) for a in argv])
+    err = capsys.readouterr().err
+    assert exited.value.code == 2, err
+    assert flag in err and "expected" in err and "Traceback" not in err
+
+
+@pytest.mark.e2e
+@pytest.mark.parametrize("argv", [BAD[0][0], ["bench", "pipeline", "--seconds", "0"],
+                                  ["experiment", "probe", "--latency", LATENCY, "--worlds", "0"]], ids=" ".join)
+def test_the_console_script_refuses_it_without_a_traceback(argv: list[str], tmp_path: Path) -> None:
     env = {**os.environ, "XDG_STATE_HOME": str(tmp_path / "state"), "XDG_CACHE_HOME": str(tmp_path / "cache")}
-    done = subprocess.run([sys.executable, "-m", module, *(a.replace(T, str(tmp_path)) for a in argv)],
+    done = subprocess.run([sys.executable, "-m", "respecd.cli", *(a.replace(T, str(tmp_path)) for a in argv)],
                           capture_output=True, text=True, timeout=60, cwd=tmp_path, env=env)
-    assert done.returncode == 2, done.stderr
-    assert "Traceback" not in done.stderr
-    assert flag in done.stderr
-    assert "expected" in done.stderr
+    assert done.returncode == 2 and "Traceback" not in done.stderr and "expected" in done.stderr, done.stderr
 
 
 def _refused(parse: Callable[[str], object], text: str) -> bool:

@@ -187,6 +187,5 @@ def test_a_recording_profile_whose_path_cannot_be_written_is_refused_with_its_li
 
 
 def test_a_lab_tool_refuses_a_directory_as_its_output_file(places: dict[str, Path]) -> None:
-    result = subprocess.run([sys.executable, "-m", "respecd.lab.experiment.latency", "--repeats", "1",
-                             str(places["dir"])], capture_output=True, text=True, timeout=30, cwd=REPO)
+    result = _respecd("experiment", "latency", "--repeats", "1", str(places["dir"]), timeout=30)
     _refused(result, "OUT", places["dir"], IS_DIR)

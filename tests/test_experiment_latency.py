@@ -34,16 +34,14 @@ def test_wall_clock_counts_the_wait_and_cpu_clock_does_not() -> None:
 
 def test_reference_file_is_what_train_policy_and_bench_read(tmp_path) -> None:
     import json
-    import subprocess
-    import sys
 
+    from respecd.cli import main as cli_main
     from respecd.config import load_profile
     from respecd.lab.experiment.rollout import controller_for
     from respecd.lab.experiment.setup import rgb_resolutions
 
     out = tmp_path / "latency.json"
-    subprocess.run([sys.executable, "-m", "respecd.lab.experiment.latency", str(out), "--repeats", "1"], check=True,
-                   capture_output=True, timeout=300)
+    assert cli_main(["experiment", "latency", str(out), "--repeats", "1"]) == 0
     doc = json.loads(out.read_text())
     assert doc["clock"] == "cpu" and doc["repeats"] == 1 and len(doc["detector_fingerprint"]) == 16
     resolutions = rgb_resolutions(controller_for(load_profile("builtin:sim-rover"), "static"))

@@ -1,7 +1,12 @@
-"""The daemon's modules import none of the offline tooling (respecd.lab) nor its extra.
+"""Layers point one way: cli -> lab -> the daemon's packages.
 
-Every import statement counts, lazy ones inside functions included: a daemon module that
-imported the tooling only on one code path would still make it a dependency of the robot.
+The daemon (respecd/ outside cli/ and lab/, and drivers/) imports neither the command line nor
+the offline tooling (respecd.lab); the lab imports no command line: its tools are called by
+``respecd`` subcommands, which parse their arguments with the core's ``respecd.argtypes``. Of
+the command line, only the lab's front-ends (``respecd train|eval|calibrate|train-policy|bench|
+experiment``) import the lab. Every import statement counts, lazy ones inside functions
+included: a daemon module that imported the tooling on one code path would still make it a
+dependency of the robot.
 """
 
 from __future__ import annotations
@@ -9,24 +14,39 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
+import pytest
+
 REPO = Path(__file__).resolve().parents[1]
-# the CLI's front-ends to the tooling: `respecd train|eval|calibrate|train-policy|bench`
-LAB_COMMANDS = {"train.py", "eval.py", "calibrate.py", "train_policy.py", "bench.py"}
+# the CLI's front-ends to the tooling
+LAB_COMMANDS = {"train.py", "eval.py", "calibrate.py", "train_policy.py", "bench.py", "experiment.py"}
 LAB_EXTRA = ("matplotlib", "tqdm")
 
 
-def daemon_modules() -> list[Path]:
-    """Every module under respecd/ and drivers/ but the tooling and its CLI front-ends."""
-    modules = sorted((REPO / "respecd").rglob("*.py")) + sorted((REPO / "drivers").rglob("*.py"))
-    return [m for m in modules
-            if "lab" not in m.relative_to(REPO).parts
-            and not (m.parent.name == "cli" and m.name in LAB_COMMANDS)]
+def layer(path: Path) -> str:
+    """'cli', 'lab-command' (a cli front-end to the lab), 'lab' or 'daemon' for a module path under REPO."""
+    parts = path.relative_to(REPO).parts
+    if parts[:2] == ("respecd", "lab"):
+        return "lab"
+    if parts[:2] == ("respecd", "cli"):
+        return "lab-command" if parts[-1] in LAB_COMMANDS else "cli"
+    if parts == ("respecd", "__main__.py"):
+        return "cli"
+    return "daemon"
 
 
-def imported_names(path: Path) -> list[tuple[int, str, bool]]:
-    """(line, module, guarded) for every import in the file; ``guarded`` when it sits in a
-    ``try`` whose handlers catch ImportError (an optional import with a fallback)."""
-    tree = ast.parse(path.read_text(), filename=str(path))
+# what each layer must not import (module prefixes)
+FORBIDDEN = {"daemon": ("respecd.cli", "respecd.lab"), "cli": ("respecd.lab",), "lab": ("respecd.cli",),
+             "lab-command": ()}
+
+
+def modules() -> list[Path]:
+    return sorted((REPO / "respecd").rglob("*.py")) + sorted((REPO / "drivers").rglob("*.py"))
+
+
+def imported_names(source: str, filename: str = "<test>") -> list[tuple[int, str, bool]]:
+    """(line, module, guarded) for every import in ``source``: ``from respecd import cli`` counts
+    as ``respecd.cli``; ``guarded`` when it sits in a ``try`` whose handlers catch ImportError
+    (an optional import with a fallback)."""
     found: list[tuple[int, str, bool]] = []
 
     def visit(node: ast.AST, guarded: bool) -> None:
@@ -34,6 +54,7 @@ def imported_names(path: Path) -> list[tuple[int, str, bool]]:
             found.extend((node.lineno, alias.name, guarded) for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
             found.append((node.lineno, node.module, guarded))
+            found.extend((node.lineno, f"{node.module}.{alias.name}", guarded) for alias in node.names)
         if isinstance(node, ast.Try):
             catches = any(_catches_import_error(h) for h in node.handlers)
             for child in node.body:
@@ -44,7 +65,7 @@ def imported_names(path: Path) -> list[tuple[int, str, bool]]:
         for child in ast.iter_child_nodes(node):
             visit(child, guarded)
 
-    visit(tree, False)
+    visit(ast.parse(source, filename=filename), False)
     return found
 
 
@@ -53,24 +74,48 @@ def _catches_import_error(handler: ast.ExceptHandler) -> bool:
     return any(isinstance(n, ast.Name) and n.id in ("ImportError", "ModuleNotFoundError") for n in names)
 
 
-def test_the_layering_test_sees_the_daemon() -> None:
-    names = {str(m.relative_to(REPO)) for m in daemon_modules()}
-    expected = {"respecd/session.py", "respecd/control/loop.py", "respecd/cli/run.py", "respecd/replay/run.py",
-                "drivers/sim.py"}
-    assert expected <= names
-    assert not any(n.startswith("respecd/lab/") for n in names)
+def violations(path: Path, source: str | None = None) -> list[str]:
+    """Each import of ``path`` (its text, or ``source``) that points against the layers."""
+    text = path.read_text() if source is None else source
+    own = layer(path)
+    found = {line: name for line, name, _ in reversed(imported_names(text, str(path)))
+             if any(name == p or name.startswith(p + ".") for p in FORBIDDEN[own])}  # one per statement
+    return [f"{path.relative_to(REPO)}:{line}: the {own} layer imports {name}" for line, name in sorted(found.items())]
 
 
-def test_daemon_modules_import_no_lab_tooling() -> None:
-    offenders = [f"{m.relative_to(REPO)}:{line}: imports {name}"
-                 for m in daemon_modules() for line, name, _ in imported_names(m)
-                 if name == "respecd.lab" or name.startswith("respecd.lab.")]
+def test_the_layers_are_seen() -> None:
+    layers: dict[str, set[str]] = {}
+    for m in modules():
+        layers.setdefault(layer(m), set()).add(str(m.relative_to(REPO)))
+    assert {"respecd/session.py", "respecd/daemon.py", "respecd/argtypes.py", "drivers/sim.py"} <= layers["daemon"]
+    assert {"respecd/cli/run.py", "respecd/cli/check_config.py", "respecd/__main__.py"} <= layers["cli"]
+    assert {"respecd/cli/bench.py", "respecd/cli/experiment.py"} <= layers["lab-command"]
+    assert "respecd/lab/bench/pipeline.py" in layers["lab"]
+
+
+def test_imports_point_one_way() -> None:
+    offenders = [v for m in modules() for v in violations(m)]
     assert not offenders, "\n".join(offenders)
+
+
+@pytest.mark.parametrize(("where", "statement"), [
+    ("respecd/perception/calibration.py", "from respecd.argtypes import resolution\nfrom respecd.cli.args import seed"),
+    ("respecd/session.py", "def f():\n    from respecd.lab.bench import pipeline"),
+    ("drivers/sim.py", "import respecd.lab.experiment.rollout"),
+    ("respecd/record/__init__.py", "from respecd import cli"),
+    ("respecd/lab/experiment/trace.py", "def main():\n    from respecd.cli import train_policy"),
+    ("respecd/lab/bench/live.py", "from respecd.cli.run import make_recorder"),
+    ("respecd/cli/run.py", "from respecd.lab.bench import BENCHES"),
+])
+def test_an_import_against_the_layers_is_caught(where: str, statement: str) -> None:
+    assert violations(REPO / where, statement), f"{where}: {statement!r} was not caught"
+    assert not violations(REPO / where, "from respecd.argtypes import seed\nimport respecd.session")
 
 
 def test_daemon_modules_need_not_have_the_lab_extra() -> None:
     """matplotlib / tqdm only behind an ImportError fallback (the replay's PNG and progress bar)."""
     offenders = [f"{m.relative_to(REPO)}:{line}: imports {name} without a fallback"
-                 for m in daemon_modules() for line, name, guarded in imported_names(m)
+                 for m in modules() if layer(m) in ("daemon", "cli")
+                 for line, name, guarded in imported_names(m.read_text(), str(m))
                  if name.split(".")[0] in LAB_EXTRA and not guarded]
     assert not offenders, "\n".join(offenders)

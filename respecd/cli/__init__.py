@@ -20,6 +20,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "check-config": ("respecd.cli.check_config", "validate profiles; print FILE:LINE: problems, exit 2 if any"),
     "schema": ("respecd.cli.schema", "print the profile JSON Schema (for yaml-language-server)"),
     "bench": ("respecd.cli.bench", "run a benchmark, print figures, write JSON"),
+    "experiment": ("respecd.cli.experiment", "diagnose the controller on simulated worlds: what a configuration "
+                   "is worth (fixed), a table with one sensor pinned (pin), static below its maximum (probe), "
+                   "detector latency (latency), the winning table (choose)"),
     "train": ("respecd.cli.train", "train the fusion detector on the simulated rover or an LLVIP-layout folder"),
     "eval": ("respecd.cli.eval", "mAP per RGB resolution and with each sensor off, contributions, faithfulness"),
     "calibrate": ("respecd.cli.calibrate", "fit the detector's confidence calibration per RGB size into a checkpoint"),

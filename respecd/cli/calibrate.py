@@ -15,7 +15,7 @@ import json
 import sys
 from pathlib import Path
 
-from respecd.cli.args import non_negative_int, positive_int, seed
+from respecd.argtypes import non_negative_int, positive_int, seed
 from respecd.errors import InputError
 from respecd.outputs import check_output_file
 

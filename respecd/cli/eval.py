@@ -20,7 +20,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from respecd.cli.args import positive_float, positive_int, resolution, seed, unit_interval
+from respecd.argtypes import positive_float, positive_int, resolution, seed, unit_interval
 from respecd.errors import InputError
 from respecd.outputs import check_output_dir
 

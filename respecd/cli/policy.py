@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from respecd.cli.args import non_negative_int
+from respecd.argtypes import non_negative_int
 from respecd.control.qlearning import block_spans, updates_per_state
 
 

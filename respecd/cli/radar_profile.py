@@ -11,12 +11,13 @@ import json
 import os
 import sys
 
+from respecd.argtypes import positive_float
 from respecd.errors import InputError
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--prefer", choices=("range", "velocity"), default="range", help="radar preference (action)")
-    parser.add_argument("--fps", type=float, default=10.0, help="frame rate 1-30 Hz (nearest table row)")
+    parser.add_argument("--fps", type=positive_float, default=10.0, help="frame rate 1-30 Hz (nearest table row)")
     parser.add_argument("--board", choices=("isk", "aop"), default="isk", help="antenna board (chirp order, gains)")
     parser.add_argument("--tx", type=int, choices=(2, 3), default=3, help="TX antennas in TDM (2: azimuth only, isk)")
     parser.add_argument("--firmware", choices=("xwr68xx_mmw_demo", "xwr64xx_mmw_demo", "xwr64xxAOP_mmw_demo"),

@@ -11,7 +11,7 @@ from typing import Any
 
 import structlog
 
-from respecd.cli.args import positive_float, seed
+from respecd.argtypes import positive_float, seed
 from respecd.config import DEFAULT_PROFILE, read_profile
 from respecd.errors import ConfigError, InputError
 

@@ -13,7 +13,7 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING, TypeVar
 
-from respecd.cli.args import non_negative_int, positive_float, positive_int, seed, unit_interval
+from respecd.argtypes import non_negative_int, positive_float, positive_int, seed, unit_interval
 from respecd.errors import InputError
 from respecd.outputs import check_output_file
 
@@ -70,7 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--keep-cut", type=unit_interval, default=0.9,
                         help="a box a training window cuts to less than this share 0..1 of its area is ignored, "
                              "not a positive (default 0.9)")
-    parser.add_argument("--radar-alone", type=float, default=0.12,
+    parser.add_argument("--radar-alone", type=unit_interval, default=0.12,
                         help="modality dropout: weight of 'radar only' among the kept-sensor subsets (default 0.12)")
     parser.add_argument("--scenario-weight", default="", metavar="NAME=W,...",
                         help="sim: how often a scenario is drawn, relative to 1 (default: simdata.SCENARIO_WEIGHTS)")
@@ -192,8 +192,6 @@ def _check(args: argparse.Namespace) -> None:
 
 def _with_radar_alone(augment: AugmentConfig, weight: float) -> AugmentConfig:
     """The dropout table with the 'radar only' subset's weight replaced (the others keep theirs)."""
-    if not 0 <= weight <= 1:
-        raise InputError(f"--radar-alone {weight}: expected a weight between 0 and 1")
     return dataclasses.replace(augment, keep=tuple((s, weight if s == ("radar",) else p) for s, p in augment.keep))
 
 

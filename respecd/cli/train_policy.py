@@ -4,11 +4,10 @@ detector outcomes; save it where ``--policy exploit`` finds it and plot the lear
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from respecd.cli.args import positive_float, positive_int, seed
+from respecd.argtypes import positive_float, positive_int, seed
 from respecd.errors import InputError
 from respecd.outputs import check_output_dir, check_output_file
 
@@ -44,6 +43,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--optimistic", action="store_true",
                         help="save never-tried actions at their initial value (default: below the state's "
                              "learned values, so exploiting only takes actions it has tried)")
+    parser.add_argument("--trace", metavar="STATE",
+                        help="also trace every update made in STATE (e.g. bright/still/dense/medium/good/high/rgb) "
+                             "and print, per cell of --trace-block, the updates' count and mean reward; "
+                             "what is learned does not change")
+    parser.add_argument("--trace-block", default="rgb", metavar="SENSOR",
+                        help="with --trace: the sensor whose cells are summarized (default rgb)")
+    parser.add_argument("--trace-json", type=Path, metavar="FILE",
+                        help="with --trace: write every traced update and the summary here")
 
 
 def _check(args: argparse.Namespace) -> None:
@@ -51,6 +58,8 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError("--episodes and --seeds: expected at least 1")
     if not 0 < args.min_s <= args.max_s:
         raise InputError(f"--min-s/--max-s: expected 0 < min <= max, got {args.min_s}, {args.max_s}")
+    if args.trace_json is not None and args.trace is None:
+        raise InputError("--trace-json: only with --trace STATE")
 
 
 def _check_outputs(args: argparse.Namespace) -> None:
@@ -64,11 +73,10 @@ def _check_outputs(args: argparse.Namespace) -> None:
     check_output_file("--curve", args.curve, example="curve.png")  # save_curve makes the folders
     if not args.no_cache:
         check_output_dir("--cache-dir", args.cache_dir)  # OutcomeCache makes the folders
+    check_output_file("--trace-json", args.trace_json, example="trace.json")  # written after the training
 
 
-def main(args: argparse.Namespace, on_table: Callable[[Any, Any], None] | None = None) -> int:
-    """``on_table(table, controller)``: sees the table and a controller of its layout before training
-    (``python -m respecd.lab.experiment.trace`` watches its updates there)."""
+def main(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from respecd.config import load_profile
@@ -85,6 +93,11 @@ def main(args: argparse.Namespace, on_table: Callable[[Any, Any], None] | None =
     check_output_file("--out" if args.out else "--state-dir", out, example="qtable.npz")  # the table's own name
     check_output_file("--curve", args.curve or out.with_suffix(".curve.png"))
     probe = controller_for(profile, "learn")
+    tracer = None
+    if args.trace is not None:  # a state or block that is not one is refused before the detector loads
+        from respecd.lab.experiment.trace import tracer_for
+
+        tracer = tracer_for(probe.table, probe, args.trace, args.trace_block)
     pinned = lat.load(args.latency, rgb_resolutions(probe)) if args.latency is not None else None
     detector = load_detector(profile, args.weights, args.random_detector)
     evaluator = make_evaluator(detector, profile, not args.no_cache, args.cache_dir)
@@ -95,8 +108,6 @@ def main(args: argparse.Namespace, on_table: Callable[[Any, Any], None] | None =
     latency_ms = lat.to_json(rollout.latency)
     print("latency (ms):", {k: round(v["forward_ms"]) for k, v in latency_ms.items()})
     table = probe.table
-    if on_table is not None:
-        on_table(table, probe)
     history: list[float] = []
     if args.resume and table is not None and load_into(out, table, probe.layout()):
         history = list(read_table(out)[0].get("episode_reward", []))
@@ -125,6 +136,10 @@ def main(args: argparse.Namespace, on_table: Callable[[Any, Any], None] | None =
     print(f"table: {out} ({result.table.updates} updates, {len(result.episode_reward)} episodes, "
           f"{result.seconds:.0f} s, detector {evaluator.inference_s:.0f} s)")
     print(f"learning curve: {curve}")
+    if tracer is not None:
+        from respecd.lab.experiment.trace import print_and_write
+
+        print_and_write(tracer, args.trace_json)
     return 0
 
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from respecd.cli.args import resolution
+from respecd.argtypes import resolution
 from respecd.errors import ConfigError, InputError
 from respecd.perception.boxes import pad_to_stride
 

@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from respecd.cli.args import positive_int, seed
+from respecd.argtypes import positive_int, seed
 from respecd.sensors import MAX_RATE_HZ, MIN_RATE_HZ
 
 

@@ -18,7 +18,7 @@ import statistics
 import time
 from typing import Any
 
-from respecd.cli.args import non_negative_int, positive_int, seed
+from respecd.argtypes import non_negative_int, positive_int, seed
 
 RESOLUTIONS = ((1280, 720), (960, 540), (640, 360))
 

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from respecd.cli.args import MAX_PORT, non_negative_float, port_number, positive_float
+from respecd.argtypes import MAX_PORT, non_negative_float, port_number, positive_float
 from respecd.lab.bench.pipeline import timed_run
 
 CLIENT = r"""

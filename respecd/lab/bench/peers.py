@@ -27,7 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from respecd.cli.args import positive_float, resolution
+from respecd.argtypes import positive_float, resolution
 from respecd.errors import InputError
 from respecd.lab.bench import peer_radar, peer_sync
 from respecd.lab.bench.drivers import DEFAULT_DATA

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from respecd.cli.args import positive_float
+from respecd.argtypes import positive_float
 
 LAG_PROBE_PERIOD_S = 0.005
 

@@ -27,7 +27,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from respecd.cli.args import non_negative_int, positive_float, resolution, seed
+from respecd.argtypes import non_negative_int, positive_float, resolution, seed
 from respecd.errors import InputError
 from respecd.outputs import check_output_dir
 

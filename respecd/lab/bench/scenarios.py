@@ -14,7 +14,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from respecd.cli.args import positive_float, positive_int, seed
+from respecd.argtypes import positive_float, positive_int, seed
 from respecd.outputs import check_output_dir, check_output_file
 
 QUICK_DURATION_S = 4.0

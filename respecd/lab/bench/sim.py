@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from respecd.cli.args import positive_float, positive_int, seed
+from respecd.argtypes import positive_float, positive_int, seed
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from respecd.cli.args import non_negative_float, positive_float
+from respecd.argtypes import non_negative_float, positive_float
 from respecd.heap import heap_mb
 from respecd.outputs import check_output_dir
 

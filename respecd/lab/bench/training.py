@@ -18,7 +18,7 @@ import statistics
 import time
 from typing import Any
 
-from respecd.cli.args import seed
+from respecd.argtypes import seed
 from respecd.errors import InputError
 
 PRECISIONS = ("fp32", "bf16")

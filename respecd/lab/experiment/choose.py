@@ -5,17 +5,18 @@ candidate's validation run meets (every goal of ``bench scenarios --json`` excep
 the ceiling", which does not depend on the table); most wins; ties go to the higher RL mAP@0.5
 (differences under 0.005 count as equal), then to the larger compute cut against the heuristic.
 
-usage: python -m respecd.lab.experiment.choose NAME=VAL.json NAME=VAL.json ...  (prints the winner's NAME)
+usage: respecd experiment choose NAME=VAL.json NAME=VAL.json ...  (prints the winner's NAME)
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
 from typing import Any
 
-from respecd.errors import InputError, report
+from respecd.errors import InputError
 
 MAP_EQUAL = 0.005  # RL mAP@0.5 differences below this are a tie
 
@@ -50,12 +51,16 @@ def _read(arg: str) -> tuple[str, dict[str, Any]]:
     return name, doc
 
 
-if __name__ == "__main__":
-    try:
-        candidates = dict(_read(a) for a in sys.argv[1:])
-        for n, r in candidates.items():
-            print(f"{n}: {criteria_met(r)} criteria, RL mAP@0.5 {r['pooled']['rl']['map50']:.3f}, compute "
-                  f"{-100 * r['summary']['rl_vs_heuristic']['compute_reduction']:+.1f} % vs heuristic", file=sys.stderr)
-        print(choose(candidates))
-    except InputError as err:
-        sys.exit(report(err, "choose"))
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("candidate", nargs="+", metavar="NAME=FILE.json",
+                        help="a candidate table's `respecd bench scenarios --json` result on the validation worlds")
+
+
+def main(args: argparse.Namespace) -> int:
+    """Each candidate's criteria, RL mAP@0.5 and compute on stderr; the winner's NAME on stdout."""
+    candidates = dict(_read(a) for a in args.candidate)
+    for n, r in candidates.items():
+        print(f"{n}: {criteria_met(r)} criteria, RL mAP@0.5 {r['pooled']['rl']['map50']:.3f}, compute "
+              f"{-100 * r['summary']['rl_vs_heuristic']['compute_reduction']:+.1f} % vs heuristic", file=sys.stderr)
+    print(choose(candidates))
+    return 0

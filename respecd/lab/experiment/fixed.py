@@ -8,7 +8,7 @@ instants: ``per_s`` a second at seeded random phases inside each second (a fixed
 the rates whose frames happen to fall just before it), on the frames that configuration delivers,
 through the same cached detector outcomes as the benchmark.
 
-usage: python -m respecd.lab.experiment.fixed SCENARIO --seeds 503,510,517 \\
+usage: respecd experiment fixed SCENARIO --seeds 503,510,517 \\
            "rgb 640x360@1 thermal 160x120@9 radar range@1" "rgb 640x360@off thermal 160x120@9 radar range@1"
 """
 
@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from respecd.cli.args import positive_float, resolution
-from respecd.errors import ConfigError, InputError, report
+from respecd.argtypes import positive_float, resolution, seed_list
+from respecd.errors import InputError
 from respecd.lab.detector.metrics import ImageResult, average_precision
 from respecd.messages import SensorConfig
 
@@ -101,27 +101,9 @@ def score(evaluator: Any, simulation: Any, scenario: str, seeds: list[int], conf
     return Scored(average_precision(pooled, 0.5), float(np.mean(confs)), tuple(per_world))
 
 
-def seed_list(text: str) -> list[int]:
-    """An argparse type: '503,510,517' -> [503, 510, 517]."""
-    try:
-        seeds = [int(s) for s in text.split(",")]
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected comma-separated world seeds, got {text!r}") from None
-    if len(set(seeds)) != len(seeds) or min(seeds) < 0:
-        raise argparse.ArgumentTypeError(f"expected distinct non-negative seeds, got {text!r}")
-    return seeds
-
-
-def main(argv: list[str] | None = None) -> int:
-    import json
-
-    from respecd.config import load_profile
-    from respecd.lab.experiment.setup import load_detector, make_evaluator
-    from respecd.outputs import check_output_dir, check_output_file
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     from respecd.sim.config import SCENARIOS
 
-    parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.fixed", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scenario", choices=sorted(SCENARIOS))
     parser.add_argument("configuration", nargs="+", help="e.g. 'rgb 640x360@1 thermal 160x120@9 radar range@1'")
     parser.add_argument("--seeds", type=seed_list, required=True,
@@ -133,14 +115,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache-dir", type=Path)
     parser.add_argument("--random-detector", action="store_true", help="an untrained net (smoke tests only)")
     parser.add_argument("--json", type=Path, help="write the figures here too")
-    a = parser.parse_args(argv)
-    try:
-        check_output_file("--json", a.json, make_parents=False, example="fixed.json")  # written after the scoring
-        check_output_dir("--cache-dir", a.cache_dir)
-        configs = {text: parse_configuration(text) for text in a.configuration}
-        profile = load_profile(a.profile)
-    except (ConfigError, InputError) as err:  # a bad profile too: FILE:LINE and what was expected
-        return report(err, "fixed")
+
+
+def main(a: argparse.Namespace) -> int:
+    import json
+
+    from respecd.config import load_profile
+    from respecd.lab.experiment.setup import load_detector, make_evaluator
+    from respecd.outputs import check_output_dir, check_output_file
+
+    check_output_file("--json", a.json, make_parents=False, example="fixed.json")  # written after the scoring
+    check_output_dir("--cache-dir", a.cache_dir)
+    configs = {text: parse_configuration(text) for text in a.configuration}
+    profile = load_profile(a.profile)
     evaluator = make_evaluator(load_detector(profile, random_init=a.random_detector), profile, True, a.cache_dir)
     figures: dict[str, dict[str, Any]] = {}
     try:
@@ -157,7 +144,3 @@ def main(argv: list[str] | None = None) -> int:
                "configurations": figures}
         a.json.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -11,6 +11,7 @@ a quiet core would take where wall time would count the waits for a core too.
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import statistics
@@ -126,7 +127,7 @@ def write_reference(out: Path, profile_ref: str = "builtin:sim-rover", weights: 
     load = " ".join(f"{x:.2f}" for x in os.getloadavg())
     doc = {"about": f"Detector latency ({clock} time, median of {repeats}, torch {profile.perception.torch_threads} "
                     f"thread(s)) of {weights or profile.perception.weights} (outcome fingerprint "
-                    f"{evaluator.fingerprint}), measured by `python -m respecd.lab.experiment.latency` at load "
+                    f"{evaluator.fingerprint}), measured by `respecd experiment latency` at load "
                     f"average {load}. train-policy --latency and bench scenarios --latency read it.",
            "clock": clock, "repeats": repeats, "load_average": load, "detector_fingerprint": evaluator.fingerprint,
            "latency_ms": to_json(table)}
@@ -134,28 +135,23 @@ def write_reference(out: Path, profile_ref: str = "builtin:sim-rover", weights: 
     return doc
 
 
-# a pinned latency file: python -m respecd.lab.experiment.latency OUT.json [--clock cpu|wall] [--repeats N] ...
-if __name__ == "__main__":
-    import argparse
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from respecd.argtypes import positive_int, seed
 
-    from respecd.cli.args import positive_int, seed
-
-    parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.latency",
-                                     description=write_reference.__doc__)
-    parser.add_argument("out", type=Path)
+    parser.add_argument("out", type=Path, help="the pinned latency file to write (JSON)")
     parser.add_argument("--profile", default="builtin:sim-rover")
     parser.add_argument("--weights")
     parser.add_argument("--repeats", type=positive_int, default=5, help="timed calls per resolution (default 5)")
     parser.add_argument("--clock", choices=sorted(CLOCKS), default="cpu")
-    parser.add_argument("--seed", type=seed, default=500,
-                        help="world seed of the frames (default 500: validation)")
-    a = parser.parse_args()
-    from respecd.errors import ConfigError, InputError, report
+    parser.add_argument("--seed", type=seed, default=500, help="world seed of the frames (default 500: validation)")
+
+
+def main(a: argparse.Namespace) -> int:
+    """A pinned latency file, for ``train-policy --latency`` and ``bench scenarios --latency``."""
     from respecd.outputs import check_output_file
 
-    try:  # the file is written after the measurement: a path that cannot take it is refused first
-        check_output_file("OUT", a.out, make_parents=False, example="latency.json")
-        doc = write_reference(a.out, a.profile, a.weights, a.repeats, a.clock, a.seed)
-    except (ConfigError, InputError) as err:
-        raise SystemExit(report(err, "latency")) from None
+    # the file is written after the measurement: a path that cannot take it is refused first
+    check_output_file("OUT", a.out, make_parents=False, example="latency.json")
+    doc = write_reference(a.out, a.profile, a.weights, a.repeats, a.clock, a.seed)
     print(json.dumps(doc["latency_ms"]))
+    return 0

@@ -9,7 +9,7 @@ worlds the table's choice for that sensor is not what its reward asks for: an ar
 learned, or a hedge against what the same states lead to in other worlds (a still state whose people start
 walking) — docs/RESULTS.md "Where the agent wins and where it loses".
 
-usage: python -m respecd.lab.experiment.pin good-light-static --seeds 500,507,514 \\
+usage: respecd experiment pin good-light-static --seeds 500,507,514 \\
            --profile configs/sim-rover-per-sensor-slowest-44-immediate.yaml --latency docs/reference-latency.json \\
            "rgb 640x360@1Hz"
 """
@@ -24,11 +24,10 @@ from typing import Any
 
 import numpy as np
 
-from respecd.cli.args import positive_float
+from respecd.argtypes import positive_float, seed_list
 from respecd.control.qlearning import FactoredQTable, block_spans
-from respecd.errors import ConfigError, InputError, report
+from respecd.errors import InputError
 from respecd.lab.detector.metrics import average_precision
-from respecd.lab.experiment.fixed import seed_list
 
 TERMS = ("conf_agg", "power", "latency", "staleness", "bandwidth", "switch")
 
@@ -104,20 +103,9 @@ def line(label: str, result: PinnedRun, reference: PinnedRun) -> str:
             f"{result.compute_ms_per_s:.0f} ms/s, {result.bandwidth_mb_s:.2f} MB/s; {same}")
 
 
-def main(argv: list[str] | None = None) -> int:
-    import json
-
-    from respecd.config import load_profile
-    from respecd.control.shipped import shipped_table_path
-    from respecd.lab.experiment import latency as lat
-    from respecd.lab.experiment.compare import rl_controller
-    from respecd.lab.experiment.rollout import Piece, Rollout
-    from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
-    from respecd.outputs import check_output_dir, check_output_file
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     from respecd.sim.config import SCENARIOS
 
-    parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.pin", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("scenario", choices=sorted(SCENARIOS))
     parser.add_argument("column", nargs="+", help="a table column to pin, e.g. 'rgb 640x360@1Hz'")
     parser.add_argument("--seeds", type=seed_list, required=True, help="world seeds, run in this order")
@@ -129,17 +117,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache-dir", type=Path)
     parser.add_argument("--random-detector", action="store_true", help="an untrained net (smoke tests only)")
     parser.add_argument("--json", type=Path, help="write the figures here too")
-    a = parser.parse_args(argv)
-    try:
-        check_output_file("--json", a.json, make_parents=False, example="pin.json")  # written after the runs
-        check_output_dir("--cache-dir", a.cache_dir)
-        profile = load_profile(a.profile)
-        table = a.table or shipped_table_path()
-        reference_controller = rl_controller(profile, table)
-        columns = [column_of(reference_controller, name) for name in a.column]
-        latency = lat.load(a.latency, rgb_resolutions(reference_controller))
-    except (ConfigError, InputError) as err:
-        return report(err, "pin")
+
+
+def main(a: argparse.Namespace) -> int:
+    import json
+
+    from respecd.config import load_profile
+    from respecd.control.shipped import shipped_table_path
+    from respecd.lab.experiment import latency as lat
+    from respecd.lab.experiment.compare import rl_controller
+    from respecd.lab.experiment.rollout import Piece, Rollout
+    from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
+    from respecd.outputs import check_output_dir, check_output_file
+
+    check_output_file("--json", a.json, make_parents=False, example="pin.json")  # written after the runs
+    check_output_dir("--cache-dir", a.cache_dir)
+    profile = load_profile(a.profile)
+    table = a.table or shipped_table_path()
+    reference_controller = rl_controller(profile, table)
+    columns = [column_of(reference_controller, name) for name in a.column]
+    latency = lat.load(a.latency, rgb_resolutions(reference_controller))
     evaluator = make_evaluator(load_detector(profile, random_init=a.random_detector), profile, True, a.cache_dir)
     rollout = Rollout(profile, evaluator, latency)
     pieces = [Piece(a.scenario, seed, a.duration) for seed in a.seeds]
@@ -160,7 +157,3 @@ def main(argv: list[str] | None = None) -> int:
                "profile": profile.name, "runs": figures}
         a.json.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -6,7 +6,7 @@ other sensor setting at its maximum, scored on the same worlds and instants as t
 Beside mAP@0.5 it reports the mean ConfAgg at the scored instants, the quality signal the agent's
 reward and state read, so one can see whether that signal rises where accuracy does.
 
-usage: python -m respecd.lab.experiment.probe --seed 500 --worlds 3 --duration 20 --latency FILE
+usage: respecd experiment probe --seed 500 --worlds 3 --duration 20 --latency FILE
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from respecd.cli.args import positive_float, positive_int, seed, unit_interval
+from respecd.argtypes import positive_float, positive_int, seed, unit_interval
 from respecd.lab.detector.metrics import ImageResult, average_precision
 from respecd.messages import conf_agg
 
@@ -75,14 +75,7 @@ def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, la
     return results
 
 
-if __name__ == "__main__":
-    import json
-    import sys
-
-    from respecd.errors import InputError
-    from respecd.outputs import check_output_dir, check_output_file
-
-    parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.probe", description=probe.__doc__)
+def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--profile", default="builtin:sim-rover")
     parser.add_argument("--seed", type=seed, default=500, help="first world seed (default 500: validation)")
     parser.add_argument("--worlds", type=positive_int, default=3, help="sets of worlds, at least 1 (default 3)")
@@ -92,14 +85,16 @@ if __name__ == "__main__":
     parser.add_argument("--json", type=Path, help="write the table here too")
     parser.add_argument("--score-threshold", type=unit_interval,
                         help="box score threshold 0..1 (default: the profile's)")
-    a = parser.parse_args()
-    try:
-        check_output_file("--json", a.json, make_parents=False, example="probe.json")  # written after the probe
-        check_output_dir("--cache-dir", a.cache_dir)
-        table = probe(a.profile, a.seed, a.worlds, a.duration, a.latency, a.cache_dir,
-                      score_threshold=a.score_threshold)
-    except InputError as err:  # a bad profile or latency file: where and what was expected, exit 2
-        print(f"probe: {err}", file=sys.stderr)
-        sys.exit(2)
+
+
+def main(a: argparse.Namespace) -> int:
+    import json
+
+    from respecd.outputs import check_output_dir, check_output_file
+
+    check_output_file("--json", a.json, make_parents=False, example="probe.json")  # written after the probe
+    check_output_dir("--cache-dir", a.cache_dir)
+    table = probe(a.profile, a.seed, a.worlds, a.duration, a.latency, a.cache_dir, score_threshold=a.score_threshold)
     if a.json:
         a.json.write_text(json.dumps(table, indent=2) + "\n", encoding="utf-8")
+    return 0

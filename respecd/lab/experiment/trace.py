@@ -1,22 +1,21 @@
-"""How one state's values came about: train exactly as ``respecd train-policy`` does, with that state's
-updates traced.
+"""How one state's values came about: ``respecd train-policy --trace STATE`` trains exactly as without it,
+with that state's updates traced.
 
-For a table whose choice in some state looks wrong (``python -m respecd.lab.experiment.pin``), this runs its
-training again — the same profile, episodes, seeds and pinned latency give the same table, bit for bit — and
-records every update made in STATE: the cell each sensor's block took, that block's reward, the best value of
-the block in the next state, and the next state. Per cell of one block (``--block``) it prints how many updates
-the cell got and when (first and last update number of the whole training), their mean reward and next-state
-value, and how many of them led into a state with another motion bin (a still state whose people start walking).
-With ``--resume`` only this run's updates are traced (the loaded values arrive without any).
+For a table whose choice in some state looks wrong (``respecd experiment pin``), the same training again
+— the same profile, episodes, seeds and pinned latency give the same table, bit for bit — records every
+update made in STATE: the cell each sensor's block took, that block's reward, the best value of the block in
+the next state, and the next state. Per cell of one block (``--trace-block``) it prints how many updates the
+cell got and when (first and last update number of the whole training), their mean reward and next-state
+value, and how many of them led into a state with another motion bin (a still state whose people start
+walking). With ``--resume`` only this run's updates are traced (the loaded values arrive without any).
 
-usage: python -m respecd.lab.experiment.trace bright/still/dense/medium/good/high/rgb --block rgb \\
+usage: respecd train-policy --trace bright/still/dense/medium/good/high/rgb --trace-block rgb \\
            --profile configs/sim-rover-per-sensor-slowest-44-immediate.yaml --episodes 54 --seeds 4 \\
-           --min-s 10 --max-s 20 --seed 0 --latency docs/reference-latency.json --out T.npz [--json TRACE]
+           --min-s 10 --max-s 20 --seed 0 --latency docs/reference-latency.json --out T.npz [--trace-json TRACE]
 """
 
 from __future__ import annotations
 
-import argparse
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -26,7 +25,7 @@ import numpy as np
 
 from respecd.control.qlearning import FactoredQTable, block_spans
 from respecd.control.state import StateSpace
-from respecd.errors import ConfigError, InputError, report
+from respecd.errors import InputError
 
 
 @dataclass(frozen=True)
@@ -46,6 +45,7 @@ class Tracer:
 
     def __init__(self, table: FactoredQTable, controller: Any, state: str, block: str) -> None:
         self.table, self.controller = table, controller
+        self.state_text, self.block_name = state, block
         self.updates: list[Update] = []
         try:
             self.state = controller.states.index(controller.states.parse(state))
@@ -53,7 +53,7 @@ class Tracer:
             raise InputError(str(err)) from None
         names = [slot.name for slot in controller.space.slots]
         if block not in names:
-            raise InputError(f"--block {block!r}: expected one of {', '.join(names)}")
+            raise InputError(f"--trace-block {block!r}: expected one of {', '.join(names)}")
         self.block = names.index(block)
         self.span = block_spans(table.blocks)[self.block]
         self.columns = controller.space.descriptions()
@@ -93,46 +93,27 @@ def summary(updates: list[Update], state: str, states: StateSpace) -> list[dict[
     return rows
 
 
-def main(argv: list[str] | None = None) -> int:
+def tracer_for(table: Any, controller: Any, state: str, block: str) -> Tracer:
+    """A tracer on ``table`` (``respecd train-policy --trace``); InputError for a table that is not factored."""
+    if not isinstance(table, FactoredQTable):
+        raise InputError("--trace: the profile's table is not factored (controller.actions.mode)")
+    return Tracer(table, controller, state, block)
+
+
+def print_and_write(tracer: Tracer, json_path: Path | None) -> None:
+    """Per cell of the traced block, one line; every update and the summary to ``json_path`` when given."""
     import json
 
-    from respecd.cli import train_policy
-    from respecd.outputs import check_output_file
-
-    parser = argparse.ArgumentParser(prog="python -m respecd.lab.experiment.trace", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("state", help="the traced state, e.g. bright/still/dense/medium/good/high/rgb")
-    parser.add_argument("--block", default="rgb", help="the sensor whose cells are summarized (default rgb)")
-    parser.add_argument("--json", type=Path, help="write every traced update and the summary here")
-    train_policy.add_arguments(parser)
-    a = parser.parse_args(argv)
-    tracers: list[Tracer] = []
-
-    def watch(table: Any, controller: Any) -> None:
-        if not isinstance(table, FactoredQTable):
-            raise InputError("the profile's table is not factored (controller.actions.mode)")
-        tracers.append(Tracer(table, controller, a.state, a.block))
-
-    try:
-        check_output_file("--json", a.json, example="trace.json")  # written after the training; folders are made
-        code = train_policy.main(a, on_table=watch)
-    except (ConfigError, InputError) as err:
-        return report(err, "trace")
-    rows = summary(tracers[0].updates, a.state, tracers[0].controller.states)
+    rows = summary(tracer.updates, tracer.state_text, tracer.controller.states)
     if not rows:
-        print(f"no update was made in {a.state}")
+        print(f"no update was made in {tracer.state_text}")
     for row in rows:
         moved = "" if row["into_other_motion"] is None else f", {row['into_other_motion']} into another motion bin"
         print(f"{row['cell']}: {row['updates']} updates ({row['first']}-{row['last']}), mean reward "
               f"{row['mean_reward']:.3f}, mean next-state value {row['mean_next_value']:.3f}{moved}; "
               f"value {row['value']:.3f}")
-    if a.json:
-        doc = {"state": a.state, "block": a.block, "summary": rows,
-               "updates": [asdict(u) for u in tracers[0].updates]}
-        a.json.parent.mkdir(parents=True, exist_ok=True)  # as `respecd bench --json`: a training's trace is not lost
-        a.json.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
-    return code
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())
+    if json_path:
+        doc = {"state": tracer.state_text, "block": tracer.block_name, "summary": rows,
+               "updates": [asdict(u) for u in tracer.updates]}
+        json_path.parent.mkdir(parents=True, exist_ok=True)  # as `respecd bench --json`: a training's trace is kept
+        json_path.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")

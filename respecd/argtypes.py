@@ -4,7 +4,8 @@ The number types below are argparse ``type=`` functions: a bad value stops the c
 its arguments are parsed, before a checkpoint loads or a simulation starts, with argparse's own
 ``error: argument --FLAG: expected ..., got ...`` and exit status 2 (no traceback). Without them
 a negative seed, a zero thread count or a NaN duration reached numpy, torch or OpenCV and came
-back as a traceback minutes later, or was silently replaced.
+back as a traceback minutes later, or was silently replaced. A core module: the command line,
+the lab's tools and the daemon's packages all parse with them.
 """
 
 from __future__ import annotations
@@ -98,3 +99,14 @@ def unit_interval(text: str) -> float:
     if not 0.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"expected a number in [0, 1], got {text!r}")
     return value
+
+
+def seed_list(text: str) -> list[int]:
+    """World seeds: '503,510,517' -> [503, 510, 517], distinct and >= 0."""
+    try:
+        seeds = [int(s) for s in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated world seeds, got {text!r}") from None
+    if len(set(seeds)) != len(seeds) or min(seeds) < 0:
+        raise argparse.ArgumentTypeError(f"expected distinct non-negative seeds, got {text!r}")
+    return seeds
