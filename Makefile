@@ -1,4 +1,4 @@
-# respecd — two commands: `make run` (simulated rover) and `make test`.
+# respecd — two commands: `make run` (simulated rover) and `make test` (`make test-fast` while editing).
 # A Jetson user points TORCH_SPEC at NVIDIA's wheel, e.g.
 #   make install TORCH_SPEC=/path/to/torch-2.5.0a0+nv24.08-cp310-cp310-linux_aarch64.whl
 # PyPI's Linux torch pulls ~2.5 GB of CUDA libraries; TORCH_INDEX adds PyTorch's CPU index (for torch
@@ -13,7 +13,7 @@ ARGS ?=
 
 SHARED ?= ../shared
 
-.PHONY: install run test bench bench-peers weights weights-rgbt weights-rgbt-hituav lint clean
+.PHONY: install run test test-fast bench bench-peers weights weights-rgbt weights-rgbt-hituav lint clean
 
 install: $(VENV)/.installed
 
@@ -30,6 +30,11 @@ run: install
 
 test: install
 	$(BIN)/pytest -q
+
+# every package, in-process, no long runs: the tests marked slow or e2e (an interpreter per
+# case, the console script end to end) are left to `make test`, which runs everything (CI)
+test-fast: install
+	$(BIN)/pytest -q -m "not slow and not e2e"
 
 bench: install
 	mkdir -p out

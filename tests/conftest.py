@@ -1,11 +1,18 @@
-"""Shared fixtures: paths to shared data, one torch thread, and a guard against leaked threads."""
+"""Shared fixtures: paths to shared data, one torch thread, the command line in-process, and a
+guard against leaked threads."""
 
 from __future__ import annotations
 
+import contextlib
+import io
+import logging
 import threading
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+import structlog
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data" / "real"
@@ -28,6 +35,42 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@dataclass(frozen=True)
+class Ran:
+    """What a command did: its exit status and what it printed."""
+
+    returncode: int
+    stdout: str
+    stderr: str
+
+
+def run_cli(*args: str) -> Ran:
+    """``respecd ARGS`` through its own parser and ``main`` in this process: argument checks and
+    start-up refusals without an interpreter each. The logging the command configured is undone."""
+    from respecd.cli import main
+
+    root = logging.getLogger()
+    handlers, level = root.handlers[:], root.level
+    out, err = io.StringIO(), io.StringIO()
+    try:
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                code = main(list(args))
+            except SystemExit as exited:  # argparse: a bad argument (2) or --help (0)
+                code = int(exited.code or 0)
+    finally:
+        structlog.reset_defaults()
+        root.handlers[:] = handlers
+        root.setLevel(level)
+    return Ran(code, out.getvalue(), err.getvalue())
+
+
+@pytest.fixture
+def cli() -> Callable[..., Ran]:
+    """``run_cli``, for a test that asks for it by name."""
+    return run_cli
 
 
 @pytest.fixture(autouse=True)

@@ -24,6 +24,7 @@ def test_the_file_gets_the_mode_open_would_give_it_not_mkstemps_0600(tmp_path: P
     assert sorted(p.name for p in target.parent.iterdir()) == ["report.json"]
 
 
+@pytest.mark.e2e
 def test_the_umask_is_read_without_changing_it() -> None:
     code = "import os; os.umask(0o027); from respecd.atomicfile import process_umask as u; print(oct(u()))"
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True)

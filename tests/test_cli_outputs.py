@@ -7,9 +7,11 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from conftest import Ran
 
 from respecd.errors import InputError
 from respecd.outputs import (
@@ -109,12 +111,12 @@ def test_a_state_dir_that_is_a_file_says_so(places: dict[str, Path]) -> None:
         f"{places['file']}: is a file, not a directory; the state directory holds the Q-table"
 
 
-# -- every command that writes, through the real CLI ------------------------------------------
+# -- every command that writes, through the real CLI (in this process; e2e: the console script) --
 def _respecd(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
     return subprocess.run([*RESPECD, *args], capture_output=True, text=True, timeout=timeout, cwd=REPO)
 
 
-def _refused(result: subprocess.CompletedProcess[str], flag: str, path: Path, what: str) -> None:
+def _refused(result: Ran | subprocess.CompletedProcess[str], flag: str, path: Path, what: str) -> None:
     assert result.returncode == 2, result.stderr[-2000:]
     assert "Traceback" not in result.stderr, result.stderr[-2000:]
     assert f"{flag} {path}: {what}" in result.stderr, result.stderr[-2000:]
@@ -157,18 +159,18 @@ CASES = [
 @pytest.mark.parametrize(("argv", "flag", "which", "what"), CASES, ids=[" ".join(c[0][:2]) + " " + c[1]
                                                                           for c in CASES])
 def test_a_bad_output_path_is_refused_before_the_work(places: dict[str, Path], argv: list[str], flag: str,
-                                                      which: str, what: str) -> None:
+                                                      which: str, what: str, cli: Callable[..., Ran]) -> None:
     log = places["tmp"] / "session.mcap"
     log.write_bytes(b"not a log")  # the output check comes first: the log is never opened
     state = places["tmp"] / "state"
     names = {k: str(v) for k, v in places.items()} | {"log": str(log), "state": str(state)}
     path = places[which] if which != "tmp" else places["tmp"] / "no" / "such" / "s.json"
-    result = _respecd(*(a.format(**names) for a in argv), timeout=30)  # a check after the work would take longer
-    _refused(result, flag, path, what.format(**names))
+    _refused(cli(*(a.format(**names) for a in argv)), flag, path, what.format(**names))
     assert not state.exists() and not (places["tmp"] / "cache").exists()  # nothing was started or left behind
     assert not list(places["tmp"].glob("*.tmp")) and not list(places["dir"].iterdir())
 
 
+@pytest.mark.e2e
 def test_a_recording_profile_whose_path_cannot_be_written_is_refused_with_its_line(places: dict[str, Path]) -> None:
     profile = places["tmp"] / "p.yaml"
     profile.write_text((REPO / "configs" / "sim-rover.yaml").read_text()
@@ -186,6 +188,5 @@ def test_a_recording_profile_whose_path_cannot_be_written_is_refused_with_its_li
     assert result.returncode == 0 and good.is_file(), result.stderr[-2000:]
 
 
-def test_a_lab_tool_refuses_a_directory_as_its_output_file(places: dict[str, Path]) -> None:
-    result = _respecd("experiment", "latency", "--repeats", "1", str(places["dir"]), timeout=30)
-    _refused(result, "OUT", places["dir"], IS_DIR)
+def test_a_lab_tool_refuses_a_directory_as_its_output_file(places: dict[str, Path], cli: Callable[..., Ran]) -> None:
+    _refused(cli("experiment", "latency", "--repeats", "1", str(places["dir"])), "OUT", places["dir"], IS_DIR)

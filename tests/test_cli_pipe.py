@@ -5,6 +5,10 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import pytest
+
+pytestmark = pytest.mark.e2e  # the console script in an interpreter of its own
+
 
 def test_a_closed_stdout_pipe_is_exit_141_without_a_traceback() -> None:
     command = [sys.executable, "-c", "import sys; from respecd.cli import main; sys.exit(main())", "schema"]

@@ -3,17 +3,15 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from conftest import run_cli
 
 from respecd.config import json_schema, load_profile
 from respecd.errors import ConfigError
 
 REPO = Path(__file__).resolve().parents[1]
-RESPECD = [sys.executable, "-m", "respecd.cli"]
 
 BAD = """\
 name: bad
@@ -154,7 +152,7 @@ def test_check_config_cli_exits_2_without_traceback(tmp_path):
     bad = tmp_path / "bad.yaml"
     bad.write_text(BAD)
     good = REPO / "configs" / "sim-rover.yaml"
-    result = subprocess.run([*RESPECD, "check-config", str(good), str(bad)], capture_output=True, text=True, timeout=60)
+    result = run_cli("check-config", str(good), str(bad))
     assert result.returncode == 2
     assert "Traceback" not in result.stderr
     assert f"{bad}:7: sensors.0.resolutoin: unknown key" in result.stderr
@@ -162,15 +160,13 @@ def test_check_config_cli_exits_2_without_traceback(tmp_path):
 
 
 def test_run_with_bad_profile_exits_2(tmp_path):
-    result = subprocess.run(
-        [*RESPECD, "--config", str(tmp_path / "absent.yaml")], capture_output=True, text=True, timeout=60
-    )
+    result = run_cli("--config", str(tmp_path / "absent.yaml"), "--state-dir", str(tmp_path / "state"))
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert "absent.yaml: no such file" in result.stderr
 
 
 def test_schema_command_prints_the_profile_schema():
-    result = subprocess.run([*RESPECD, "schema"], capture_output=True, text=True, timeout=60, check=True)
+    result = run_cli("schema")
     schema = json.loads(result.stdout)
     assert schema["title"] == "respecd profile"
     assert {"sensors", "sync", "perception", "controller", "recording", "telemetry"} <= set(schema["properties"])

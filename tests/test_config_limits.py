@@ -9,6 +9,7 @@ import tracemalloc
 from pathlib import Path
 
 import pytest
+from conftest import run_cli
 
 from respecd.config import load_profile, read_profile
 from respecd.errors import ConfigError
@@ -45,8 +46,7 @@ def test_alias_bomb_is_refused_before_it_expands(tmp_path: Path) -> None:
 def test_check_config_on_an_alias_bomb_exits_2_without_traceback(tmp_path: Path) -> None:
     bomb = tmp_path / "bomb.yaml"
     bomb.write_text(BOMB)
-    result = subprocess.run([sys.executable, "-m", "respecd.cli", "check-config", str(bomb)],
-                            capture_output=True, text=True, timeout=60)
+    result = run_cli("check-config", str(bomb))
     assert result.returncode == 2 and "Traceback" not in result.stderr and "alias" in result.stderr
 
 
@@ -134,6 +134,7 @@ def test_a_control_character_is_named_by_its_1_based_line_without_pyyamls_positi
     assert problem.startswith("P:3: not valid YAML: character U+0001 at column 14") and "position" not in problem
 
 
+@pytest.mark.e2e
 def test_a_device_is_refused_by_size_not_read_whole(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match=r"/dev/zero:1: profile gives more bytes than the 262144 allowed"):
         read_profile("/dev/zero")

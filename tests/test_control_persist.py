@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import run_cli
 
 from respecd.control.config import Learning
 from respecd.control.persist import load_into, read_table, resolve_state_dir, save_table, table_path
@@ -167,12 +168,8 @@ def test_an_npz_with_an_object_array_is_refused_without_suggesting_unsafe_loadin
 
 
 def test_policy_show_on_garbage_exits_2(tmp_path: Path) -> None:
-    import subprocess
-    import sys
-
     path = tmp_path / "garbage2.npz"
     path.write_bytes(np.random.default_rng(4).bytes(20_000))
-    result = subprocess.run([sys.executable, "-m", "respecd.cli", "policy", "show", str(path)],
-                            capture_output=True, text=True, timeout=60)
+    result = run_cli("policy", "show", str(path))
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert f"{path}: not a respecd Q-table" in result.stderr and "allow_pickle" not in result.stderr

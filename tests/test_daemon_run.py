@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.e2e  # the console script in an interpreter of its own
+
 RESPECD = [sys.executable, "-m", "respecd.cli"]
 
 

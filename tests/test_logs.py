@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 from respecd.terminal import CLEAR_LINE, UP_CLEAR, Terminal
 
 SCRIPT = """
@@ -33,6 +35,7 @@ def _run(script: str, out: Path, env: dict[str, str]) -> list[str]:
     return out.read_text().splitlines()
 
 
+@pytest.mark.e2e
 def test_under_systemd_every_line_starts_with_its_syslog_priority(tmp_path: Path) -> None:
     lines = _run(SCRIPT, tmp_path / "out", {"JOURNAL_STREAM": "{dev}:{ino}"})
     assert [line[:3] for line in lines] == ["<6>", "<4>", "<3>", "<4>", "<4>"]
@@ -41,11 +44,13 @@ def test_under_systemd_every_line_starts_with_its_syslog_priority(tmp_path: Path
     assert events[3]["message"] == "client dropped" and "old API" in events[4]["message"]
 
 
+@pytest.mark.e2e
 def test_without_the_journal_the_json_stream_is_unchanged(tmp_path: Path) -> None:
     lines = _run(SCRIPT, tmp_path / "out", {"JOURNAL_STREAM": "1:2"})  # another stream: not ours
     assert all(line.startswith("{") for line in lines)
 
 
+@pytest.mark.e2e
 def test_opencv_warnings_become_events(tmp_path: Path) -> None:
     script = """
 import cv2, structlog
@@ -80,6 +85,7 @@ def test_status_panel_is_redrawn_and_log_lines_go_above_it() -> None:
     assert stream.getvalue() == (f"{panel}{erase}warning: radar reconnecting\n{panel}{erase}t=2s | rgb 30Hz\n")
 
 
+@pytest.mark.e2e
 def test_per_decision_lines_are_for_machines_or_verbose(tmp_path: Path) -> None:
     script = """
 import structlog, sys

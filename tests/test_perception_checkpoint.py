@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from conftest import run_cli
 
 from respecd.errors import ConfigError
 from respecd.perception import checkpoint
@@ -91,8 +90,7 @@ def test_a_truncated_real_checkpoint_is_called_truncated(tmp_path: Path) -> None
 def test_eval_with_weights_that_are_no_checkpoint_exits_2(tmp_path: Path) -> None:
     path = tmp_path / "garbage.pt"
     path.write_bytes(np.random.default_rng(2).bytes(20_000))
-    result = subprocess.run([sys.executable, "-m", "respecd.cli", "eval", "--data", "sim", "--weights", str(path),
-                             "--out", str(tmp_path / "ev")], capture_output=True, text=True, timeout=120)
+    result = run_cli("eval", "--data", "sim", "--weights", str(path), "--out", str(tmp_path / "ev"))
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert f"respecd: {path}: not a torch checkpoint" in result.stderr and "Python objects" not in result.stderr
 
@@ -161,8 +159,7 @@ def test_bench_replay_refuses_bad_weights_before_its_recording_phase(tmp_path: P
     path = tmp_path / "garbage.pt"
     path.write_bytes(np.random.default_rng(6).bytes(20_000))
     start = time.monotonic()
-    result = subprocess.run([sys.executable, "-m", "respecd.cli", "bench", "replay", "--weights", str(path),
-                             "--seconds", "1"], capture_output=True, text=True, timeout=120)
+    result = run_cli("bench", "replay", "--weights", str(path), "--seconds", "1")
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert f"{path}: not a torch checkpoint" in result.stderr
     assert time.monotonic() - start < 20  # the recording phase alone took over 30 s

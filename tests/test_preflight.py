@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from conftest import Ran, run_cli
 
 from respecd.config import read_profile
 from respecd.preflight import check_profile, check_state_dir, device_problem
@@ -29,7 +30,13 @@ def _line(path: Path, text: str) -> int:
     return path.read_text().splitlines().index(text) + 1
 
 
-def _run(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+def _run(*args: str) -> Ran:
+    """The command's start-up checks, in this process (they refuse before anything runs)."""
+    return run_cli(*args)
+
+
+def _spawn(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    """The console script in an interpreter of its own: a run that gets past its start-up checks."""
     return subprocess.run([*RESPECD, *args], capture_output=True, text=True, timeout=timeout)
 
 
@@ -145,11 +152,12 @@ def test_read_only_state_dir_is_caught_by_a_real_write(tmp_path: Path) -> None:
     assert check_state_dir(state) is None and not list(state.iterdir())  # the probe leaves nothing behind
 
 
+@pytest.mark.e2e
 def test_a_frozen_policy_runs_from_a_read_only_state_dir(tmp_path: Path) -> None:
     """Only learning writes the state directory; exploit may run from a read-only image."""
     blocker = tmp_path / "file"
     blocker.write_text("")
-    result = _run("--duration", "1", "--policy", "exploit", "--state-dir", str(blocker / "state"), timeout=120)
+    result = _spawn("--duration", "1", "--policy", "exploit", "--state-dir", str(blocker / "state"), timeout=120)
     assert result.returncode == 0, result.stderr[-2000:]
 
 
@@ -191,6 +199,7 @@ def test_weights_that_are_a_directory_or_no_torch_file_are_named(tmp_path: Path)
     assert "expected a respecd checkpoint written by `respecd train`" in problem
 
 
+@pytest.mark.e2e
 def test_a_second_learning_daemon_on_the_same_state_dir_is_refused(tmp_path: Path) -> None:
     """Each would save its Q-table over the other's; the first holds the directory until it ends."""
     import signal
@@ -204,10 +213,10 @@ def test_a_second_learning_daemon_on_the_same_state_dir_is_refused(tmp_path: Pat
             deadline = time.monotonic() + 60
             while time.monotonic() < deadline and "driver_started" not in first.stdout.readline():
                 assert first.poll() is None
-            second = _run("--duration", "2", "--state-dir", str(state))
+            second = _spawn("--duration", "2", "--state-dir", str(state))
             assert second.returncode == 2 and "Traceback" not in second.stderr
             assert f"another respecd (pid {first.pid}) is learning into this state directory" in second.stderr
-            static = _run("--duration", "1", "--policy", "static", "--state-dir", str(state))
+            static = _spawn("--duration", "1", "--policy", "static", "--state-dir", str(state))
             assert static.returncode == 0  # a policy that only reads the table runs beside it
             first.send_signal(signal.SIGTERM)
             assert first.wait(timeout=30) == 0

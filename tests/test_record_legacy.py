@@ -8,11 +8,10 @@ the overlays) stay readable: ``log info`` describes them and their frames decode
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
+from conftest import run_cli
 
 from respecd.record.reader import open_log
 
@@ -20,8 +19,7 @@ LEGACY = Path(__file__).parent / "data" / "legacy-v1.mcap"
 
 
 def test_log_info_describes_a_first_format_log() -> None:
-    done = subprocess.run([sys.executable, "-m", "respecd", "log", "info", str(LEGACY), "--json"],
-                          capture_output=True, text=True, timeout=60)
+    done = run_cli("log", "info", str(LEGACY), "--json")
     assert done.returncode == 0, done.stderr
     info = json.loads(done.stdout)
     assert info["profile"] == "sim-rover-legacy" and info["ground_truth"] is True

@@ -56,6 +56,7 @@ def test_info_on_missing_file_is_exit_2(tmp_path: Path, capsys: pytest.CaptureFi
     assert "none.mcap: no such file" in err and "Traceback" not in err
 
 
+@pytest.mark.e2e
 def test_a_log_that_cannot_be_read_is_exit_2_without_traceback(small_log: Path) -> None:
     """chmod 000 as a user who may not read it (root reads anyway: uid 65534 through setpriv)."""
     import os

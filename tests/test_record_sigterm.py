@@ -8,9 +8,12 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
 import yaml
 
 from respecd.record.reader import open_log
+
+pytestmark = pytest.mark.e2e  # the console script in an interpreter of its own
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 

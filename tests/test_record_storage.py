@@ -19,6 +19,7 @@ from pathlib import Path
 import pytest
 import structlog
 import yaml
+from conftest import run_cli
 from structlog.testing import capture_logs
 
 from respecd.record import writer as writer_module
@@ -169,6 +170,7 @@ def test_a_long_recording_stays_under_max_bytes(tmp_path: Path) -> None:
     assert on_disk[-1].path == segments.paths[-1] and segments.state == "recording"
 
 
+@pytest.mark.e2e
 def test_daemon_on_a_refusing_disk_runs_on_and_says_so(tmp_path: Path) -> None:
     profile = yaml.safe_load((REPO / "configs" / "sim-rover.yaml").read_text())
     profile["perception"] = {"enabled": False}
@@ -216,9 +218,7 @@ def test_the_daemon_refuses_a_recording_name_already_taken(tmp_path: Path, exist
     """`--record run.mcap` twice: the second run stops at start (exit 2) instead of overwriting the first,
     also when only a later segment of an earlier session under that name is left."""
     (tmp_path / existing).write_bytes(b"yesterday's session")
-    done = subprocess.run([sys.executable, "-m", "respecd.cli", "--duration", "5", "--record",
-                           str(tmp_path / "run.mcap"), "--state-dir", str(tmp_path / "state")],
-                          capture_output=True, text=True, timeout=60)
+    done = run_cli("--duration", "5", "--record", str(tmp_path / "run.mcap"), "--state-dir", str(tmp_path / "state"))
     assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
     assert f"{tmp_path / existing} exists and a recording is never overwritten" in done.stderr
     assert (tmp_path / existing).read_bytes() == b"yesterday's session"

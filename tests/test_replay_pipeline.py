@@ -239,6 +239,7 @@ def _files(directory: Path) -> dict[str, str]:
     return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(directory.iterdir())}
 
 
+@pytest.mark.e2e
 def test_replay_reads_but_never_changes_a_live_state_directory(session_log: Path, tmp_path: Path) -> None:
     state = session_log.parent / "state"
     before = _files(state)
@@ -279,6 +280,7 @@ def _signalled_replay(argv: list[str], wait_for: str, after_s: float) -> tuple[i
     return proc.returncode, err, elapsed
 
 
+@pytest.mark.e2e
 def test_sigterm_stops_a_replay_with_its_report(session_log: Path, tmp_path: Path) -> None:
     report = tmp_path / "r.json"
     rc, err, elapsed = _signalled_replay(["--replay", str(session_log), "--speed", "1", "--report", str(report)],
@@ -290,6 +292,7 @@ def test_sigterm_stops_a_replay_with_its_report(session_log: Path, tmp_path: Pat
     assert entry["decisions"]  # what was replayed before the signal is in the report
 
 
+@pytest.mark.e2e
 def test_sigterm_while_the_detector_loads_stops_a_lockstep_replay(session_log: Path, tmp_path: Path) -> None:
     from respecd.errors import ConfigError
     from respecd.perception.checkpoint import resolve

@@ -14,6 +14,8 @@ from pathlib import Path
 import pytest
 import yaml
 
+pytestmark = pytest.mark.e2e  # the console script in an interpreter of its own
+
 CONFIGS = Path(__file__).resolve().parents[1] / "configs"
 RESPECD = [sys.executable, "-m", "respecd.cli"]
 STOP_BUDGET_S = 2.0

@@ -95,6 +95,7 @@ def _expand(group: str, seen: set[str]) -> set[str]:
 
 @pytest.mark.skipif(shutil.which("systemd-analyze") is None or shutil.which("strace") is None,
                     reason="needs systemd-analyze and strace")
+@pytest.mark.e2e
 def test_every_syscall_the_daemon_makes_passes_the_filter(tmp_path):
     """The simulated rover with recording, traced: no call the unit's SystemCallFilter refuses."""
     settings = _settings((SYSTEMD / "respecd.service").read_text())

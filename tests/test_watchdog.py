@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 from types import SimpleNamespace
 
+import pytest
 import yaml
 
 from respecd.clock import ManualClock
@@ -88,6 +89,7 @@ def _absent_rover(tmp: Path) -> Path:
     return path
 
 
+@pytest.mark.e2e
 def test_daemon_with_every_sensor_absent_keeps_feeding_the_watchdog() -> None:
     tmp = Path(tempfile.mkdtemp(prefix="rwd-", dir="/tmp"))  # AF_UNIX paths must be short
     try:
