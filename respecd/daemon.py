@@ -58,9 +58,13 @@ class Daemon:
         controller = session.profile.controller
         self.liveness = Liveness(session.clock, session.profile.telemetry.watchdog_stall_s,
                                  controller.decision_period_s + controller.apply_timeout_s)
-        hooks = session.hooks
-        for kind in ("frame", "bundle", "inference", "percept", "decision", "tick"):
-            getattr(hooks, kind).append(getattr(self.liveness, f"on_{kind}"))
+        hooks, live = session.hooks, self.liveness
+        hooks.frame.append(live.on_frame)
+        hooks.bundle.append(live.on_bundle)
+        hooks.inference.append(live.on_inference)
+        hooks.percept.append(live.on_percept)
+        hooks.decision.append(live.on_decision)
+        hooks.tick.append(live.on_tick)
         hooks.up.append(self._up)
         hooks.stopping.append(self._stopping)
         self._chores: dict[str, asyncio.Task[None]] = {}

@@ -10,7 +10,10 @@ bytes in use stay flat, docs/PERFORMANCE.md "soak").
 from __future__ import annotations
 
 import gc
+import shutil
+import socket
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +25,7 @@ from respecd.clock import MonotonicClock
 from respecd.config import load_profile
 from respecd.daemon import GIL_SWITCH_INTERVAL_S, Daemon
 from respecd.heap import heap_mb
+from respecd.sdnotify import Notifier
 from respecd.session import Session
 
 REPO = Path(__file__).resolve().parents[1]
@@ -75,4 +79,33 @@ async def test_freed_heap_pages_go_back_while_the_daemon_runs(tmp_path: Path) ->
     await daemon.run(duration=1.2)
     assert held - _rss_mb() > 100, "the freed pages are still resident"
     del blocks
+    structlog.reset_defaults()
+
+
+async def test_the_daemon_says_ready_status_watchdog_and_stopping(tmp_path: Path,
+                                                                 monkeypatch: pytest.MonkeyPatch) -> None:
+    folder = Path(tempfile.mkdtemp(prefix="rdc-", dir="/tmp"))  # AF_UNIX paths must be short
+    server = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+    try:
+        server.bind(str(folder / "notify"))
+        server.setblocking(False)
+        monkeypatch.setenv("WATCHDOG_USEC", "1000000")  # fed every 0.5 s
+        monkeypatch.delenv("WATCHDOG_PID", raising=False)
+        lines: list[str] = []
+        daemon = Daemon(_quiet_rover(tmp_path), notifier=Notifier(address=str(folder / "notify")),
+                        status_sink=lambda fields, line: lines.append(line))
+        await daemon.run(duration=2.5)
+        messages = []
+        while True:
+            try:
+                messages.append(server.recv(65536).decode())
+            except BlockingIOError:
+                break
+    finally:
+        server.close()
+        shutil.rmtree(folder, ignore_errors=True)
+    assert messages[0] == "READY=1\nSTATUS=pipeline up" and messages[-1] == "STOPPING=1"
+    assert messages.count("WATCHDOG=1") >= 3
+    statuses = [m for m in messages if m.startswith("STATUS=t=")]
+    assert statuses and lines and statuses[0] == f"STATUS={lines[0]}" and "sync" in lines[0]
     structlog.reset_defaults()
