@@ -20,6 +20,7 @@ def args(data: Path, *extra: str) -> argparse.Namespace:
                               "--detector-repeats", "1", *extra])
 
 
+@pytest.mark.slow
 def test_peers_bench_measures_ours_and_skips_missing_peers(shared_data: Path, tmp_path: Path) -> None:
     figures = peers.run(args(shared_data, "--peers", str(tmp_path)))  # an empty folder: no checkout in it
     radar, sync, detector = figures["radar_parser"], figures["synchronizer"], figures["detector"]

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 import structlog
 import yaml
 
@@ -33,6 +34,7 @@ def test_slope_after_warmup_ignores_the_warmup_climb() -> None:
     assert fit["samples"] == 300 and fit["median_last_2min_mb"] > fit["median_first_2min_mb"]
 
 
+@pytest.mark.slow
 def test_a_short_soak_writes_its_samples(tmp_path: Path) -> None:
     profile = yaml.safe_load((REPO / "configs" / "sim-rover.yaml").read_text())
     profile["perception"] = {"enabled": False}

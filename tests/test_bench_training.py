@@ -18,6 +18,7 @@ def _unbind_structlog():  # type: ignore[no-untyped-def]
     structlog.reset_defaults()
 
 
+@pytest.mark.slow
 def test_bench_training_times_both_precisions_on_the_same_batches(tmp_path: Path,
                                                                   capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "training.json"

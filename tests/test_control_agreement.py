@@ -121,6 +121,7 @@ async def _daemon_path(profile: Any, recording: Recording, tmp_path: Path) -> li
     return decisions
 
 
+@pytest.mark.slow
 def test_the_daemon_and_the_trainer_take_the_same_decisions(tmp_path: Path) -> None:
     profile = _profile(tmp_path)
     recording, start, _ = _train(profile)

@@ -433,6 +433,7 @@ def _learns_cheapest_depth_rate(credit: str, seed: int) -> bool:
     return table.cells(table.greedy(controller._prev_state))[1] == 0
 
 
+@pytest.mark.slow
 def test_a_sensor_the_detector_does_not_read_learns_its_cheapest_rate_through_quality_noise() -> None:
     per_sensor = [_learns_cheapest_depth_rate("per-sensor", seed) for seed in range(20)]
     shared = [_learns_cheapest_depth_rate("shared", seed) for seed in range(20)]
@@ -461,6 +462,7 @@ def _depth_settles_on_its_cheapest_rate(unread: str, seed: int) -> bool:
     return table.cells(table.greedy_tried(controller.states.index(controller.states.bins(usual))) or 0)[1] == 0
 
 
+@pytest.mark.slow
 def test_an_unread_sensor_learning_its_costs_alone_settles_on_its_cheapest_rate() -> None:
     # Depth's own costs rise by 0.033 a decision from 1 to 5 Hz. Bootstrapping, each cell's target holds the next
     # state's best value as it stood when the cell was last chosen: values fall from the optimistic 1.0 towards

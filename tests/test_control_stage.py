@@ -87,6 +87,7 @@ class Rig:
             await asyncio.gather(*readers)
 
 
+@pytest.mark.slow
 async def test_learn_run_decides_applies_and_persists(tmp_path: Path) -> None:
     rig = Rig(tmp_path, "learn")
     await rig.run(6.0)

@@ -69,6 +69,7 @@ async def test_the_daemon_sets_them_while_it_runs_and_puts_them_back(tmp_path: P
     structlog.reset_defaults()
 
 
+@pytest.mark.slow
 async def test_freed_heap_pages_go_back_while_the_daemon_runs(tmp_path: Path) -> None:
     if heap_mb() is None:
         pytest.skip("not glibc: there is no malloc_trim to call")

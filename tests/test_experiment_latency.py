@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import time
 
+import pytest
+
 from respecd.lab.experiment import latency as lat
 
 
@@ -32,6 +34,7 @@ def test_wall_clock_counts_the_wait_and_cpu_clock_does_not() -> None:
     assert cpu.attribution_s >= 0.009  # the CPU the attributed call spent is counted
 
 
+@pytest.mark.slow
 def test_reference_file_is_what_train_policy_and_bench_read(tmp_path) -> None:
     import json
 

@@ -66,6 +66,7 @@ def trained(profile_path: Path, tmp_path_factory: pytest.TempPathFactory) -> Pat
     return out
 
 
+@pytest.mark.slow
 def test_training_updates_and_saves_the_table(trained: Path, profile_path: Path) -> None:
     meta, q, visits = read_table(trained)
     assert meta["updates"] == 2 * (len(SCENARIOS) * 2 - 1)  # every step but an episode's first scores the previous one
@@ -76,6 +77,7 @@ def test_training_updates_and_saves_the_table(trained: Path, profile_path: Path)
     assert np.array_equal(controller.table.q, q) and controller.policy == "exploit"
 
 
+@pytest.mark.slow
 def test_train_policy_with_a_pinned_latency_learns_the_same_table_twice(profile_path: Path, tmp_path: Path,
                                                                        monkeypatch) -> None:
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
@@ -111,6 +113,7 @@ def test_static_probe_scores_each_variant_on_every_scenario(profile_path: Path, 
             assert set(row) == {"pooled", *SCENARIOS} and all(0.0 <= v <= 1.0 for v in row.values())
 
 
+@pytest.mark.slow
 def test_probe_score_threshold_reaches_the_detector(profile_path: Path, tmp_path: Path) -> None:
     from respecd.lab.experiment.probe import probe
 
@@ -154,6 +157,7 @@ def test_episodes_are_randomized() -> None:
     assert all(2.0 <= p.duration_s <= 5.0 and 0 <= p.seed < 3 for p in a + b)
 
 
+@pytest.mark.slow
 def test_bench_scenarios_json(trained: Path, profile_path: Path, tmp_path: Path, monkeypatch) -> None:
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     out, md, png = tmp_path / "b.json", tmp_path / "b.md", tmp_path / "b.png"
@@ -177,6 +181,7 @@ def test_bench_scenarios_json(trained: Path, profile_path: Path, tmp_path: Path,
                                             "experiment")) > 0  # the outcomes went to the user cache dir
 
 
+@pytest.mark.slow
 def test_bench_scenarios_pools_world_sets_and_reports_their_spread(trained: Path, profile_path: Path,
                                                                   tmp_path: Path, monkeypatch) -> None:
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
@@ -227,6 +232,7 @@ def test_worlds_needs_the_simulator(trained: Path, profile_path: Path, tmp_path:
     assert "--worlds: a recorded log has one set" in err and "--worlds: expected at least 1" in err
 
 
+@pytest.mark.slow
 def test_bench_with_a_pinned_latency_repeats_a_run(trained: Path, profile_path: Path, tmp_path: Path,
                                                   monkeypatch) -> None:
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
@@ -295,6 +301,7 @@ def test_conservative_fill_prefers_tried_actions_and_keep() -> None:
     assert table.greedy(2) == 0  # a state never visited holds the configuration
 
 
+@pytest.mark.slow
 def test_rollout_charges_the_detector_it_runs(profile_path: Path) -> None:
     # The reward sees what the benchmark reports: P = sensor model + compute_w x busy share,
     # and the window's latency is the detector time over the inferences that ran.
@@ -390,6 +397,7 @@ def test_fixed_instants_fall_inside_their_second_at_seeded_phases() -> None:
     assert points == instants(7, 3.0, 2) and points != instants(8, 3.0, 2)
 
 
+@pytest.mark.slow
 def test_fixed_scores_each_configuration_on_the_same_worlds(profile_path: Path, tmp_path: Path, capsys) -> None:
     out = tmp_path / "fixed.json"
     code = cli_main(["experiment", "fixed", "poor-light-moving", "rgb 640x360@1 thermal 160x120@9 radar range@1",
@@ -441,6 +449,7 @@ def test_pin_makes_one_column_its_sensors_choice_in_every_state(trained: Path, p
     assert np.array_equal(table.q[:, others], before[:, others])  # only that column moves
 
 
+@pytest.mark.slow
 def test_pin_runs_the_table_as_trained_and_pinned_on_the_same_worlds(trained: Path, profile_path: Path,
                                                                       tmp_path: Path, capsys) -> None:
     latency = tmp_path / "lat.json"
@@ -501,6 +510,7 @@ def test_trace_records_one_states_updates_without_changing_what_is_learned(profi
     assert tracer.updates[1].value_after == traced.table.q[state, 0]
 
 
+@pytest.mark.slow
 def test_trace_learns_the_table_train_policy_learns(profile_path: Path, tmp_path: Path, monkeypatch, capsys) -> None:
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
     latency = tmp_path / "lat.json"

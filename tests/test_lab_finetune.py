@@ -39,6 +39,7 @@ def tiny_hituav(shared_data: Path, tmp_path: Path) -> Path:
     return root
 
 
+@pytest.mark.slow
 def test_fine_tune_from_darknet_weights(tiny_hituav: Path, shared_data: Path, tmp_path: Path, capsys) -> None:
     weights = shared_data.parent / "pretrained" / "yolo_fastest" / "yolo-fastest-1.1_body.weights"
     out = tmp_path / "rgbt.pt"
@@ -66,6 +67,7 @@ def test_fine_tune_from_darknet_weights(tiny_hituav: Path, shared_data: Path, tm
     assert "wrote" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_fine_tune_only_the_fusion_of_a_thermal_backbone_from_another_model(tiny_hituav: Path, shared_data: Path,
                                                                              tmp_path: Path) -> None:
     folder = shared_data.parent / "pretrained" / "yolo_fastest"
@@ -97,6 +99,7 @@ def test_bad_fine_tune_arguments(tiny_hituav: Path, tmp_path: Path, capsys) -> N
     assert "multiples of 32" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_fine_tune_on_a_folder_mixed_with_the_simulator(tiny_hituav: Path, shared_data: Path, tmp_path: Path) -> None:
     weights = shared_data.parent / "pretrained" / "yolo_fastest" / "yolo-fastest-1.1_body.weights"
     out = tmp_path / "mix.pt"
@@ -124,6 +127,7 @@ def test_mixed_source_draws_the_simulator_at_its_share() -> None:
     assert 0.27 <= share <= 0.33
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("share", ["1.0", "-0.1"])
 def test_bad_sim_mix_is_refused(tiny_hituav: Path, tmp_path: Path, capsys, share: str) -> None:
     assert cli_main(["train", "--data", str(tiny_hituav), "--out", str(tmp_path / "x.pt"), "--sim-mix", share]) == 2

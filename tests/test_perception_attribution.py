@@ -184,6 +184,7 @@ def test_no_detection_decays_toward_uniform() -> None:
     assert much_later["thermal"] == pytest.approx(1 / 3, abs=1e-6)
 
 
+@pytest.mark.slow
 def test_attribution_runs_on_real_llvip_pairs(shared_data) -> None:
     from respecd.lab.detector.data import llvip_frames
 

@@ -65,6 +65,7 @@ def _tiny_checkpoint(path: Path, calibration: dict | None) -> None:
     checkpoint.save(path, FusionNet(TINY), extra)
 
 
+@pytest.mark.slow
 def test_the_detector_reports_calibrated_confidences_in_the_same_order(tmp_path: Path) -> None:
     raw_path, calibrated_path = tmp_path / "raw.pt", tmp_path / "cal.pt"
     _tiny_checkpoint(raw_path, None)
@@ -88,6 +89,7 @@ def test_training_from_a_calibrated_checkpoint_starts_from_raw_confidences(tmp_p
     assert initial_model(str(path), TINY).score_calibration is None  # new weights need a new fit
 
 
+@pytest.mark.slow
 def test_calibrate_command_writes_the_map_beside_unchanged_weights(tmp_path: Path, capsys) -> None:
     out = tmp_path / "sim-rover.pt"
     assert cli_main(["calibrate", "--weights", "builtin:sim-rover", "--out", str(out), "--frames", "6", "--seed", "7",
@@ -108,6 +110,7 @@ def test_calibrate_command_writes_the_map_beside_unchanged_weights(tmp_path: Pat
     assert detector.model.score_calibration is not None
 
 
+@pytest.mark.slow
 def test_calibrate_command_refuses_a_net_that_finds_too_few_people(tmp_path: Path, capsys) -> None:
     weights = tmp_path / "tiny.pt"
     _tiny_checkpoint(weights, None)

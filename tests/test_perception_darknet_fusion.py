@@ -37,6 +37,7 @@ def pair(shared_data: Path) -> tuple[torch.Tensor, torch.Tensor]:
     return rgb, torch.from_numpy(ir).float()[None, None] / 255
 
 
+@pytest.mark.slow
 def test_a_sensor_that_is_off_adds_nothing(weights: Path, pair) -> None:
     model = from_darknet(SPEC, weights).eval()
     ref = darknet.load(weights.with_suffix(".cfg"), weights)
@@ -52,6 +53,7 @@ def test_a_sensor_that_is_off_adds_nothing(weights: Path, pair) -> None:
         assert any((a - b).abs().max() > 0.1 for a, b in zip(both, rgb_only, strict=True))  # both on: fused
 
 
+@pytest.mark.slow
 def test_checkpoint_round_trip_and_detector(weights: Path, pair, tmp_path: Path) -> None:
     model = from_darknet(SPEC, weights).eval()
     path = tmp_path / "rgbt.pt"
@@ -93,6 +95,7 @@ XL = "yolo-fastest-1.1-xl"
 MIXED = ModelSpec(backbone=f"darknet:{NAME}", aux_backbone=f"darknet:{XL}", aux_scale=0.5, aux_modalities=("thermal",))
 
 
+@pytest.mark.slow
 def test_a_thermal_backbone_from_another_model_starts_silent(weights: Path, pair) -> None:
     with pytest.raises(InputError, match="needs its own .weights file"):
         from_darknet(MIXED, weights)
@@ -114,6 +117,7 @@ def test_a_thermal_backbone_from_another_model_starts_silent(weights: Path, pair
         torch.testing.assert_close(ours, pretrained, rtol=0, atol=1e-4)
 
 
+@pytest.mark.slow
 def test_a_checkpoint_with_one_joint_fusion_kernel_loads(weights: Path, pair) -> None:
     """Checkpoints written before the fusion was split into its RGB and aux halves hold one (c, 2c) kernel."""
     model = from_darknet(SPEC, weights).eval()

@@ -56,6 +56,7 @@ def _responsive(net: FusionNet) -> FusionNet:
     return net
 
 
+@pytest.mark.slow
 def test_eval_command_on_real_llvip_pairs(shared_data, tmp_path: Path, capsys) -> None:
     torch.manual_seed(0)
     weights = tmp_path / "tiny.pt"
@@ -79,6 +80,7 @@ def test_eval_command_on_real_llvip_pairs(shared_data, tmp_path: Path, capsys) -
     assert "wrote" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_eval_command_on_the_simulator_writes_every_key(tmp_path: Path) -> None:
     """The keys the acceptance check reads, for every condition and resolution (a tiny net, 1 run each)."""
     torch.manual_seed(0)

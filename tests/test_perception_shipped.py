@@ -64,6 +64,7 @@ def test_detects_at_night_and_thermal_carries_it(detector: FusionDetector) -> No
     assert percept.contributions["thermal"] > percept.contributions["rgb"]
 
 
+@pytest.mark.slow
 def test_inference_bench_reports_every_resolution(monkeypatch) -> None:
     from respecd.lab.bench import inference
 

@@ -156,6 +156,7 @@ def test_no_done_is_a_timeout_and_crash_output_is_logged(tmp_path: Path) -> None
         fake.unplug()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("mode", ["silent", "garbage"])
 async def test_a_present_but_misbehaving_data_port_is_logged_once_and_backed_off(
     radar: FakeRadar, mode: str

@@ -55,6 +55,7 @@ async def test_each_frame_is_counted_once_and_the_rate_is_the_streams(radar: Fak
     assert driver.health.errors == 0  # a clean stream (and the partial packet a connection joins) is no damage
 
 
+@pytest.mark.slow
 async def test_a_hung_radar_is_one_warning_and_its_return_one_info_line(radar: FakeRadar) -> None:
     """A CLI that stops answering wrote a warning per try (24 in a 40-s outage): now radar.lost, then radar.back."""
     config = radar_config(radar, cli_timeout_s=0.1, cli_retries=1, stall_timeout_s=0.3,
@@ -77,6 +78,7 @@ async def test_a_hung_radar_is_one_warning_and_its_return_one_info_line(radar: F
     assert {"radar.cli_retry", "radar.cfg_restart", "radar.retry"} <= debug  # still there, at debug
 
 
+@pytest.mark.slow
 async def test_a_silent_cli_at_start_is_one_warning_until_it_answers(radar: FakeRadar) -> None:
     """Silent from the start: 43 warnings in 25 s before (per CLI try and cfg restart); now the supervisor's one."""
     radar.silent = True

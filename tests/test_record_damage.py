@@ -58,6 +58,7 @@ def _read(path: Path, decode: bool) -> tuple[SessionLog, set[tuple[str, int, byt
     return session, messages, profile
 
 
+@pytest.mark.slow
 def test_a_flipped_byte_anywhere_is_reported_never_passed_on(small_log: Path, tmp_path: Path) -> None:
     original = open_log(small_log, verify=True, warn=False)
     good, profile = _contents(original)

@@ -52,6 +52,7 @@ def session_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return log
 
 
+@pytest.mark.slow
 def test_recorded_session_opens_with_the_mcap_reader(session_log: Path) -> None:
     schemas: dict[str, set[str]] = {}
     with open(session_log, "rb") as f:
@@ -80,6 +81,7 @@ def _replay(log: Path, report: Path, *extra: str) -> int:
                  "--log-format", "json", *extra])
 
 
+@pytest.mark.slow
 def test_speed_max_replays_are_identical(session_log: Path, tmp_path: Path) -> None:
     assert _replay(session_log, tmp_path / "a.json", "--seed", "3") == 0
     assert _replay(session_log, tmp_path / "b.json", "--seed", "3") == 0
@@ -92,6 +94,7 @@ def test_speed_max_replays_are_identical(session_log: Path, tmp_path: Path) -> N
     assert (tmp_path / "a.png").stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_speed_max_with_the_detector_is_deterministic(session_log: Path, tmp_path: Path) -> None:
     """The detector runs in its own worker thread: lockstep must not let its timing leak."""
     from respecd.errors import ConfigError
@@ -115,6 +118,7 @@ def test_speed_max_with_the_detector_is_deterministic(session_log: Path, tmp_pat
     assert a["decisions"] == b["decisions"] and len(a["decisions"]) >= 2
 
 
+@pytest.mark.slow
 def test_a_replay_decodes_only_the_rgb_frames_the_detector_runs_on(
     session_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
@@ -147,6 +151,7 @@ def test_a_replay_decodes_only_the_rgb_frames_the_detector_runs_on(
             assert not thread.is_alive()
 
 
+@pytest.mark.slow
 def test_static_and_heuristic_give_a_comparison_table(
     session_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -166,6 +171,7 @@ def test_static_and_heuristic_give_a_comparison_table(
     assert report.with_suffix(".png").is_file()
 
 
+@pytest.mark.slow
 def test_cut_log_replays_up_to_the_cut_with_a_warning(
     session_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -180,6 +186,7 @@ def test_cut_log_replays_up_to_the_cut_with_a_warning(
     assert 0.5 < entry["replayed_s"] < 3.9
 
 
+@pytest.mark.slow
 def test_damaged_log_replays_with_one_warning_per_damaged_chunk(
     session_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -201,6 +208,7 @@ def test_damaged_log_replays_with_one_warning_per_damaged_chunk(
     assert entry["replayed_s"] > 3.5  # the rest of the log was replayed
 
 
+@pytest.mark.slow
 def test_speed_2_replays_on_a_scaled_wall_clock(session_log: Path, tmp_path: Path) -> None:
     entries = {}
     for speed in ("max", "2"):

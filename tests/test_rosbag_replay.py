@@ -120,6 +120,7 @@ def test_topic_map_errors_name_the_topic(tmp_path: Path, capsys: pytest.CaptureF
     assert "expected one of rgb, thermal" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_the_real_ros1_bag_replays_with_the_guess_printed(shared_data: Path, capsys: pytest.CaptureFixture) -> None:
     bag = shared_data / "rosbags" / "kapture_t265_ros1" / "trimmed_locoffice.bag"
     assert main(["--replay", str(bag), "--speed", "max", "--log-level", "warning", "--log-format", "json"]) == 0
