@@ -223,4 +223,4 @@ def test_a_second_learning_daemon_on_the_same_state_dir_is_refused(tmp_path: Pat
         finally:
             if first.poll() is None:
                 first.kill()
-    assert _run("--duration", "1", "--state-dir", str(state), timeout=120).returncode == 0  # released at exit
+    assert _spawn("--duration", "1", "--state-dir", str(state), timeout=120).returncode == 0  # released at exit
