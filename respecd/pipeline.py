@@ -24,6 +24,7 @@ from respecd.supervisor import driver_backoff, driver_runner, supervise
 from respecd.sync import HealthThresholds, Synchronizer
 
 if TYPE_CHECKING:
+    from respecd.config import Profile
     from respecd.control.stage import ControllerStage
     from respecd.perception.stage import PerceptionStage
 
@@ -31,7 +32,7 @@ if TYPE_CHECKING:
 class Pipeline:
     """The stages of one run and the queues between them; ``hooks`` observe every hand-over."""
 
-    def __init__(self, profile: Any, clock: Clock, context: DriverContext, hooks: Hooks,
+    def __init__(self, profile: Profile, clock: Clock, context: DriverContext, hooks: Hooks,
                  latency_model: Any = None) -> None:
         self.profile = profile
         self.clock = clock
@@ -55,10 +56,10 @@ class Pipeline:
         self.controller: ControllerStage | None = None
 
     def make_perception(self) -> PerceptionStage:
-        from respecd.perception.stage import PerceptionStage
+        from respecd.perception.stage import PerceptionStage, calibration_from_profile
 
-        self.perception = PerceptionStage(self.profile.perception, self.profile, self.clock,
-                                          latency_model=self.latency_model)
+        self.perception = PerceptionStage(self.profile.perception, calibration_from_profile(self.profile),
+                                          self.clock, latency_model=self.latency_model)
         self.perception.on_inference.extend(self.hooks.inference)
         return self.perception
 

@@ -20,6 +20,7 @@ from typing import Any
 
 from respecd import filekind
 from respecd.config import LoadedProfile
+from respecd.drivers.uvc import UVCConfig
 from respecd.errors import ConfigError
 from respecd.perception.config import resolve_weights
 
@@ -113,7 +114,7 @@ def device_problem(device: str) -> str | None:
 
 
 def _at(loaded: LoadedProfile, path: tuple[Any, ...], message: str) -> str:
-    return f"{loaded.label}:{loaded.line(*path)}: {'.'.join(map(str, path))}: {message}"
+    return f"{loaded.where(*path)}: {'.'.join(map(str, path))}: {message}"
 
 
 def _weights(loaded: LoadedProfile) -> list[str]:
@@ -148,7 +149,7 @@ def _replay_sensors(loaded: LoadedProfile) -> list[str]:
             "every sensor of the profile for a replay sensor itself; for a live run name a device driver "
             "(sim, uvc, flirone, iwr6843, realsense)")
         for i, sensor in enumerate(loaded.model.sensors)
-        if getattr(sensor, "driver", None) == "replay"
+        if sensor.driver == "replay"
     ]
 
 
@@ -160,7 +161,7 @@ def _sensor_files(loaded: LoadedProfile) -> list[str]:
             value = getattr(sensor, key)
             if isinstance(value, Path) and not value.is_file():
                 problems.append(_at(loaded, ("sensors", i, key), f"{value}: no such file"))
-        if getattr(sensor, "is_file", False) and not Path(str(sensor.device)).is_file():
+        if isinstance(sensor, UVCConfig) and sensor.is_file and not Path(str(sensor.device)).is_file():
             problems.append(_at(loaded, ("sensors", i, "device"), f"{sensor.device}: no such video file"))
     return problems
 

@@ -23,6 +23,7 @@ from typing import Any, TypeVar
 import structlog
 
 from respecd.clock import Clock
+from respecd.config import Profile
 from respecd.drivers.base import DriverContext
 from respecd.observe import Hooks, Observer
 from respecd.pipeline import Pipeline
@@ -44,7 +45,7 @@ class Session:
 
     def __init__(
         self,
-        profile: Any,
+        profile: Profile,
         clock: Clock,
         context: DriverContext | None = None,
         *,

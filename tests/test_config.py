@@ -8,8 +8,9 @@ from pathlib import Path
 import pytest
 from conftest import run_cli
 
-from respecd.config import json_schema, load_profile
+from respecd.config import load_profile
 from respecd.errors import ConfigError
+from respecd.profile_schema import json_schema
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -190,3 +191,15 @@ def test_averaged_candidate_differs_from_m44_only_in_the_step_size_floor():
     m44_learning, averaged_learning = m44["controller"].pop("learning"), averaged["controller"].pop("learning")
     assert averaged == m44
     assert m44_learning["learning_rate"] == 0.2 and averaged_learning == {**m44_learning, "learning_rate": 0.05}
+
+
+def test_the_profiles_sensor_union_holds_every_registered_driver():
+    """``Profile.sensors`` is typed statically (mypy follows it); the registry is what starts drivers:
+    a driver added to one must be added to the other."""
+    import typing
+
+    from respecd.config import SensorEntry
+    from respecd.drivers import config_classes
+
+    union, _ = typing.get_args(SensorEntry)
+    assert set(typing.get_args(union)) == set(config_classes())

@@ -49,7 +49,7 @@ async def test_stage_runs_detector_in_one_worker_thread_at_the_cadence() -> None
     torch.manual_seed(0)
     config = PerceptionConfig(model=TINY, score_threshold=0.0, max_detections=5, attribution_every_s=1.0)
     detector = RecordingDetector(FusionNet(TINY), config)
-    stage = PerceptionStage(config, profile=None, clock=ManualClock(), detector=detector)
+    stage = PerceptionStage(config, calibration=None, clock=ManualClock(), detector=detector)
     bundles: DropOldestQueue[Bundle] = DropOldestQueue(4)
     percepts = DropOldestQueue(8)
     task = asyncio.create_task(stage.run(bundles, percepts), name="perception")
@@ -77,7 +77,7 @@ async def test_with_a_controller_attribution_runs_only_when_asked() -> None:
     """The controller asks once per decision window: no attribution the cadence would add."""
     config = PerceptionConfig(model=TINY, score_threshold=0.0, max_detections=5, attribution_every_s=0.5)
     detector = RecordingDetector(FusionNet(TINY), config)
-    stage = PerceptionStage(config, profile=None, clock=ManualClock(), detector=detector)
+    stage = PerceptionStage(config, calibration=None, clock=ManualClock(), detector=detector)
     stage.attribute_on_request()
     bundles: DropOldestQueue[Bundle] = DropOldestQueue(4)
     percepts = DropOldestQueue(8)
@@ -97,7 +97,7 @@ async def test_stage_with_bad_weights_fails_to_load(tmp_path) -> None:
 
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not torch")
-    stage = PerceptionStage(PerceptionConfig(weights=str(bad)), profile=None, clock=ManualClock())  # no I/O yet
+    stage = PerceptionStage(PerceptionConfig(weights=str(bad)), calibration=None, clock=ManualClock())  # no I/O yet
     with pytest.raises(ConfigError, match="bad.pt"):
         await stage.load()
 
@@ -106,7 +106,7 @@ async def test_bundles_without_a_new_detector_input_are_skipped() -> None:
     """An IMU keeps the synchronizer at 30 Hz; the detector runs only on new RGB/aux frames."""
     config = PerceptionConfig(model=TINY, score_threshold=0.0, max_detections=5)
     detector = RecordingDetector(FusionNet(TINY), config)
-    stage = PerceptionStage(config, profile=None, clock=ManualClock(), detector=detector)
+    stage = PerceptionStage(config, calibration=None, clock=ManualClock(), detector=detector)
     bundles: DropOldestQueue[Bundle] = DropOldestQueue(8)
     percepts = DropOldestQueue(8)
     first = _bundle(0.0, 0)

@@ -99,7 +99,7 @@ def test_paced_perception_skips_bundles_like_a_busy_detector() -> None:
         clock = LockstepClock(0.0)
         bundles = DropOldestQueue[Bundle](2, "bundles")
         percepts = DropOldestQueue[Percept](64, "percepts")
-        stage = PerceptionStage(PerceptionConfig(attribution_every_s=1000.0), None, clock, _InstantDetector(),
+        stage = PerceptionStage(PerceptionConfig(attribution_every_s=1000.0), {}, clock, _InstantDetector(),
                                 latency_model=model)
         measured: list[float] = []
         taken: list[float] = []
@@ -197,7 +197,7 @@ def _arrivals(detector: _InstantDetector) -> list[float]:
         bundles = DropOldestQueue[Bundle](2, "bundles")
         percepts = DropOldestQueue[Percept](64, "percepts")
         config = PerceptionConfig(attribution_every_s=1000.0)
-        stage = PerceptionStage(config, None, clock, detector, latency_model=model)
+        stage = PerceptionStage(config, {}, clock, detector, latency_model=model)
         arrived: list[float] = []
         percepts.taps.append(lambda p: arrived.append(clock.now()))
 

@@ -7,13 +7,16 @@ import asyncio
 import contextlib
 import os
 import sys
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import structlog
 
 from respecd.argtypes import positive_float, seed
 from respecd.config import DEFAULT_PROFILE, read_profile
 from respecd.errors import ConfigError, InputError
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 log = structlog.get_logger(__name__)
 
@@ -164,7 +167,7 @@ def status_printer(console: bool) -> Any:
     return sink
 
 
-async def run_live(profile: Any, args: argparse.Namespace, signals: Any, console: bool, state_dir: Any) -> int:
+async def run_live(profile: Profile, args: argparse.Namespace, signals: Any, console: bool, state_dir: Any) -> int:
     from respecd.clock import MonotonicClock
     from respecd.daemon import Daemon
     from respecd.drivers.base import DriverContext

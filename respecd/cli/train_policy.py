@@ -5,11 +5,14 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from respecd.argtypes import positive_float, positive_int, seed
 from respecd.errors import InputError
 from respecd.outputs import check_output_dir, check_output_file
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -143,7 +146,7 @@ def main(args: argparse.Namespace) -> int:
     return 0
 
 
-def _info(profile: Any, args: argparse.Namespace, result: Any, evaluator: Any, latency_ms: dict[str, Any]) -> dict:
+def _info(profile: Profile, args: argparse.Namespace, result: Any, evaluator: Any, latency_ms: dict[str, Any]) -> dict:
     return {"profile": profile.name, "policy": "learn", "trainer": "respecd train-policy",
             "episodes": len(result.episode_reward), "decisions": result.decisions,
             "episode_reward": [round(r, 5) for r in result.episode_reward],

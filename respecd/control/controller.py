@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from respecd.control.actions import ActionSpace, Position, build_slots
 from respecd.control.bandwidth import sensing_bandwidth
@@ -34,6 +34,9 @@ from respecd.control.reward import (
 from respecd.control.state import Observation, StateSpace, motion_bin
 from respecd.messages import Decision, SensorConfig
 from respecd.sensors import Capabilities, SensorPower
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 LEARNING_POLICIES = ("learn", "exploit")
 
@@ -76,7 +79,7 @@ class Controller:
 
     @classmethod
     def from_profile(
-        cls, config: ControllerConfig, profile: Any, capabilities: Mapping[str, Capabilities] | None = None
+        cls, config: ControllerConfig, profile: Profile, capabilities: Mapping[str, Capabilities] | None = None
     ) -> Controller:
         """Build the spaces from the profile's sensors (and the drivers' capabilities)."""
         slots = build_slots(config.actions, profile.sensors, capabilities, profile.sync.max_rate_hz)

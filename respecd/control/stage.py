@@ -16,7 +16,7 @@ import contextlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import structlog
 
@@ -35,6 +35,9 @@ from respecd.messages import Decision, Percept, SensorConfig
 from respecd.queues import DropOldestQueue
 from respecd.sensors import Capabilities
 from respecd.timeouts import within
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 log = structlog.get_logger(__name__)
 
@@ -99,7 +102,7 @@ class ControllerStage:
     def __init__(
         self,
         config: ControllerConfig,
-        profile: Any,
+        profile: Profile,
         drivers: dict[str, Driver],
         clock: Clock,
         state_dir: Path | None = None,

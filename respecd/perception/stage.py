@@ -22,9 +22,9 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import structlog
 
@@ -33,6 +33,10 @@ from respecd.messages import Bundle, Percept
 from respecd.perception.config import PerceptionConfig
 from respecd.priority import lower_thread_priority
 from respecd.queues import DropOldestQueue
+from respecd.sensors import Calibration
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 log = structlog.get_logger(__name__)
 
@@ -45,10 +49,10 @@ class LatencyModel(Protocol):
     def predict(self, bundle: Bundle, attributed: bool) -> float: ...
 
 
-def calibration_from_profile(profile: Any) -> dict[str, Any]:
-    """Per modality, the calibration of the first enabled sensor that has one (else None)."""
-    calibration: dict[str, Any] = {}
-    for sensor in getattr(profile, "sensors", ()) or ():
+def calibration_from_profile(profile: Profile) -> dict[str, Calibration | None]:
+    """Per modality, the calibration of the first sensor that has one (else None)."""
+    calibration: dict[str, Calibration | None] = {}
+    for sensor in profile.sensors:
         if calibration.get(sensor.modality) is None:
             calibration[sensor.modality] = sensor.calibration
     return calibration
@@ -64,10 +68,11 @@ class PerceptionStage:
     Percepts on the queue keep ``contributions=None`` when not attributed).
     """
 
-    def __init__(self, config: PerceptionConfig, profile: Any, clock: Clock, detector: Any = None,
-                 latency_model: LatencyModel | None = None) -> None:
+    def __init__(self, config: PerceptionConfig, calibration: Mapping[str, Calibration | None] | None,
+                 clock: Clock, detector: Any = None, latency_model: LatencyModel | None = None) -> None:
+        """``calibration``: per modality (``calibration_from_profile``); None when a detector is given."""
         self.config = config
-        self.profile = profile
+        self.calibration = dict(calibration or {})
         self.clock = clock
         self.last: Percept | None = None
         self.processed = 0
@@ -177,7 +182,7 @@ class PerceptionStage:
         from respecd.perception.detector import FusionDetector
 
         torch.set_num_threads(self.config.torch_threads)
-        return FusionDetector.load(self.config, calibration_from_profile(self.profile))
+        return FusionDetector.load(self.config, self.calibration)
 
     def _has_new_input(self, bundle: Bundle) -> bool:
         """True when a detector input (RGB or an aux modality) brings a frame not yet seen.

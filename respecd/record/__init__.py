@@ -2,15 +2,16 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 from respecd.clock import Clock
 
 if TYPE_CHECKING:
+    from respecd.config import Profile
     from respecd.record.recorder import Recorder
 
 
-def make_recorder(profile: Any, path: str | None, clock: Clock, foxglove: str | None = None) -> Recorder | None:
+def make_recorder(profile: Profile, path: str | None, clock: Clock, foxglove: str | None = None) -> Recorder | None:
     """The recorder when a log (``path`` or the profile's ``recording``) or the live view
     (``foxglove``, ``[HOST:]PORT``) is asked for; None when neither is."""
     to_file = path is not None or profile.recording.enabled

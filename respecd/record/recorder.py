@@ -16,9 +16,10 @@ import asyncio
 import threading
 import time
 from collections import deque
+from collections.abc import Mapping
 from datetime import datetime, timezone
 from pathlib import Path
-from typing import Any, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 import structlog
 
@@ -38,7 +39,10 @@ from respecd.record.topics import (  # noqa: F401 - re-exported: the recorder's 
     raw_topic,
     sensor_topic,
 )
-from respecd.record.writer import SegmentWriter, session_metadata
+from respecd.record.writer import SegmentWriter, profile_document, session_metadata
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 log = structlog.get_logger(__name__)
 
@@ -59,22 +63,19 @@ class Sink(Protocol):
     def close(self) -> None: ...
 
 
-def _formats(config: RecordingConfig, profile: Any) -> codec.ImageFormats:
-    dump = profile.model_dump(mode="json") if hasattr(profile, "model_dump") else dict(profile)
-    perception = dump.get("perception") or {}
+def _formats(config: RecordingConfig, profile: Mapping[str, Any]) -> codec.ImageFormats:
+    perception = profile.get("perception") or {}
     return codec.ImageFormats(
         config.rgb_format, config.jpeg_quality, config.depth_format, config.thermal_colormap,
         tuple(perception.get("thermal_range_k", (273.0, 313.0))), float(perception.get("thermal_counts_per_k", 100.0)),
     )
 
 
-def _rgb_sensor(profile: Any) -> str | None:
-    """Name of the profile's first RGB sensor (a Profile model or its plain-dict form)."""
-    sensors = profile.get("sensors", []) if isinstance(profile, dict) else getattr(profile, "sensors", [])
-    for sensor in sensors:
-        entry = sensor if isinstance(sensor, dict) else {"name": sensor.name, "modality": sensor.modality}
-        if entry.get("modality") == "rgb":
-            return str(entry.get("name"))
+def _rgb_sensor(profile: Mapping[str, Any]) -> str | None:
+    """Name of the profile's first RGB sensor."""
+    for sensor in profile.get("sensors", []):
+        if sensor.get("modality") == "rgb":
+            return str(sensor.get("name"))
     return None
 
 
@@ -85,17 +86,23 @@ class Recorder:
     """
 
     def __init__(
-        self, config: RecordingConfig, profile: Any, clock: Clock, live: Sink | None = None, to_file: bool = True
+        self,
+        config: RecordingConfig,
+        profile: Profile | Mapping[str, Any],
+        clock: Clock,
+        live: Sink | None = None,
+        to_file: bool = True,
     ) -> None:
+        """``profile``: the Profile, or its JSON form (what the log stores)."""
         self.config = config
-        self.profile = profile
+        self.profile = profile_document(profile)
         self.clock = clock
         self.channels = frozenset(config.channels)
         self.dropped = 0
         self.errors = 0
         self.cpu_s = 0.0  # worker thread CPU time, for the overhead benchmark
-        self._formats = _formats(config, profile)
-        self._scene = Scene(profile)
+        self._formats = _formats(config, self.profile)
+        self._scene = Scene(self.profile)
         self._live = live
         self._to_file = to_file
         self._sinks: list[Sink] = []
@@ -108,7 +115,7 @@ class Recorder:
         self._cond = threading.Condition()
         self._closing = False
         self._drain_until = float("inf")
-        self._rgb_sensor = _rgb_sensor(profile)
+        self._rgb_sensor = _rgb_sensor(self.profile)
         self._thread: threading.Thread | None = None
         self._segments: SegmentWriter | None = None
         self._epoch_ns = 0

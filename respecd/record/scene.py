@@ -14,6 +14,7 @@ log segment read on its own, has them.
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import foxglove.messages as fox
@@ -49,16 +50,12 @@ def quaternion(rot: np.ndarray) -> fox.Quaternion:
     return fox.Quaternion(x=float(x), y=float(y), z=float(z), w=float(w))
 
 
-def _sensors(profile: Any) -> list[dict[str, Any]]:
-    dump = profile.model_dump(mode="json") if hasattr(profile, "model_dump") else dict(profile)
-    return [dict(s) for s in dump.get("sensors", [])]
-
-
 class Scene:
     """The profile's calibration, turned into Foxglove messages on demand."""
 
-    def __init__(self, profile: Any) -> None:
-        sensors = _sensors(profile)
+    def __init__(self, profile: Mapping[str, Any]) -> None:
+        """``profile``: the profile's JSON form (``writer.profile_document``)."""
+        sensors = [dict(s) for s in profile.get("sensors", [])]
         rgb = next((s for s in sensors if s.get("modality") == "rgb"), None)
         self.reference = str(rgb["name"]) if rgb else None
         self.intrinsics = {

@@ -12,19 +12,23 @@ import errno
 import json
 import os
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from datetime import datetime, timezone
 from importlib import metadata
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import structlog
 from mcap.writer import CompressionType, Writer
+from pydantic import BaseModel
 
 from respecd.record.codec import Message
 from respecd.record.config import RecordingConfig
 from respecd.record.schemas import schema_def
 from respecd.record.storage import MIB, Retention, free_bytes
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 log = structlog.get_logger(__name__)
 
@@ -324,9 +328,13 @@ def _version() -> str:
         return "unknown"
 
 
-def session_metadata(profile: Any, started: datetime, t0: float, epoch_ns: int) -> dict[str, dict[str, str]]:
-    """MCAP metadata records: the profile used (as JSON) and the session's time origin."""
-    dump = profile.model_dump(mode="json") if hasattr(profile, "model_dump") else dict(profile)
+def profile_document(profile: Profile | Mapping[str, Any]) -> dict[str, Any]:
+    """The profile as the log stores it: its JSON form (a test rig may give that form directly)."""
+    return profile.model_dump(mode="json") if isinstance(profile, BaseModel) else dict(profile)
+
+
+def session_metadata(dump: Mapping[str, Any], started: datetime, t0: float, epoch_ns: int) -> dict[str, dict[str, str]]:
+    """MCAP metadata records: the profile used (its JSON form) and the session's time origin."""
     return {
         "respecd.profile": {"name": str(dump.get("name", "")), "json": json.dumps(dump, separators=(",", ":"))},
         "respecd.session": {

@@ -5,7 +5,7 @@ lockstep replay — nothing that reads this machine's state (the CPU probe)."""
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import structlog
 from pydantic import ValidationError
@@ -13,6 +13,9 @@ from pydantic import ValidationError
 from respecd.errors import ConfigError, InputError
 from respecd.messages import Frame
 from respecd.record.reader import SessionLog
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 log = structlog.get_logger(__name__)
 
@@ -49,9 +52,9 @@ def replay_sensor(entry: dict[str, Any], session: SessionLog, first: Frame) -> d
 
 
 def replay_profile(base: dict[str, Any], session: SessionLog, firsts: dict[str, Frame], *, seed: int,
-                   lockstep: bool, policy: str | None = None) -> Any:
+                   lockstep: bool, policy: str | None = None) -> Profile:
     """Validated Profile for the replay (ConfigError with one line per problem)."""
-    from respecd.config import profile_model
+    from respecd.config import Profile
 
     doc = dict(base)
     sensors = []
@@ -73,7 +76,7 @@ def replay_profile(base: dict[str, Any], session: SessionLog, firsts: dict[str, 
         controller["system_probe"] = False  # CPU share of this machine would make decisions differ
     doc["controller"] = controller
     try:
-        return profile_model().model_validate(doc)
+        return Profile.model_validate(doc)
     except ValidationError as err:
         where = f"{session.path}: replay profile"
         problems = [f"{where}: {'.'.join(map(str, e['loc']))}: {e['msg']}" for e in err.errors()]

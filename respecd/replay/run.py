@@ -24,16 +24,20 @@ import asyncio
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import structlog
 
+from respecd.drivers.replay import ReplayConfig
 from respecd.errors import InputError
 from respecd.record.reader import SessionLog, open_log
 from respecd.replay import report as rpt
 from respecd.replay import report_out
 from respecd.replay.latency import LatencyModel
 from respecd.replay.profile import first_frames, replay_profile
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 log = structlog.get_logger(__name__)
 
@@ -120,7 +124,7 @@ def _base_profile(config: str | Path | None, session: Any) -> dict[str, Any]:
     return dict(recorded)
 
 
-def _tables(profile: Any, state_dir: str | Path | None, save_table: str | Path | None) -> Any:
+def _tables(profile: Profile, state_dir: str | Path | None, save_table: str | Path | None) -> Any:
     """Read (never rename) the state directory's table when given; write only ``save_table``."""
     from respecd.control.persist import table_path
     from respecd.control.stage import TableFiles
@@ -134,7 +138,7 @@ def _tables(profile: Any, state_dir: str | Path | None, save_table: str | Path |
 class _Replay:
     """One replay run: a session around replay drivers, its clock driven to the end."""
 
-    def __init__(self, profile: Any, session: SessionLog, speed: str, t0: float, duration: float, seed: int,
+    def __init__(self, profile: Profile, session: SessionLog, speed: str, t0: float, duration: float, seed: int,
                  tables: Any, observe: Any = None) -> None:
         self.profile = profile
         self.observe = observe
@@ -144,11 +148,11 @@ class _Replay:
         self.duration = duration
         self.seed = seed
         self.tables = tables
-        rgb = next((s for s in profile.sensors if s.modality == "rgb"), None)
+        rgb = next((s for s in profile.sensors if isinstance(s, ReplayConfig) and s.modality == "rgb"), None)
         truth, self.logged_percepts = session.side_data(rgb.source or rgb.name if rgb else None)
         self.collector = rpt.Collector(
             rpt.build_reference(truth, self.logged_percepts),
-            tuple(rgb.native_resolution) if rgb is not None and rgb.native_resolution else None,
+            rgb.native_resolution if rgb is not None else None,
         )
         self.latency_source = "measured" if profile.perception.enabled else "none (perception off)"
 

@@ -10,11 +10,14 @@ import argparse
 import asyncio
 import os
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from respecd.argtypes import positive_float
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 LAG_PROBE_PERIOD_S = 0.005
 
@@ -69,7 +72,7 @@ async def timed_run(daemon: Any, seconds: float) -> tuple[list[float], list[floa
     return jitter, lag, time.process_time() - cpu0, time.perf_counter() - wall0
 
 
-async def _measure(profile: Any, seconds: float) -> dict[str, Any]:
+async def _measure(profile: Profile, seconds: float) -> dict[str, Any]:
     import tempfile
     from pathlib import Path
 

@@ -25,11 +25,14 @@ import os
 import tempfile
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from respecd.argtypes import non_negative_int, positive_float, resolution, seed
 from respecd.errors import InputError
 from respecd.outputs import check_output_dir
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 LOGS = ("rgb-only.mcap", "rover.mcap", "rover-zstd.mcap", "session.mcap")  # what --keep keeps
 
@@ -202,7 +205,7 @@ def _profile(args: argparse.Namespace, size: tuple[int, int], work: Path) -> tup
     return base.model_copy(update={"sensors": sensors, "controller": controller, "perception": perception}), note
 
 
-def _record_simulated(profile: Any, path: Path, args: argparse.Namespace) -> Path:
+def _record_simulated(profile: Profile, path: Path, args: argparse.Namespace) -> Path:
     """A simulated session recorded in lockstep (as fast as the renderers go, no detector)."""
     from respecd.drivers.base import DriverContext
     from respecd.record.recorder import Recorder
@@ -227,7 +230,7 @@ def _record_simulated(profile: Any, path: Path, args: argparse.Namespace) -> Pat
     return path
 
 
-def _replay(profile: Any, log: Path, work: Path, args: argparse.Namespace, observe: Any = None) -> dict[str, Any]:
+def _replay(profile: Profile, log: Path, work: Path, args: argparse.Namespace, observe: Any = None) -> dict[str, Any]:
     import json
 
     import yaml
@@ -259,7 +262,7 @@ def _replay(profile: Any, log: Path, work: Path, args: argparse.Namespace, obser
     }
 
 
-def _capture(profile: Any, into: list[tuple[dict[str, Any], bool]]) -> Any:
+def _capture(profile: Profile, into: list[tuple[dict[str, Any], bool]]) -> Any:
     """A replay observer keeping each inference's detector inputs and whether it attributed."""
     inputs = {"rgb", *profile.perception.model.aux_modalities}
 
@@ -273,7 +276,7 @@ def _capture(profile: Any, into: list[tuple[dict[str, Any], bool]]) -> Any:
     return observe
 
 
-def detector_only(profile: Any, inferences: list[tuple[dict[str, Any], bool]], log_s: float) -> dict[str, Any]:
+def detector_only(profile: Profile, inferences: list[tuple[dict[str, Any], bool]], log_s: float) -> dict[str, Any]:
     """The replay's inferences again, through the detector alone: same frames, same
     attributions, same checkpoint and thread count, one after another on this thread."""
     from respecd.perception.detector import FusionDetector

@@ -12,10 +12,13 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from respecd.argtypes import positive_float, positive_int, seed
 from respecd.outputs import check_output_dir, check_output_file
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 QUICK_DURATION_S = 4.0
 
@@ -122,7 +125,7 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError("--worlds: a recorded log has one set of scenes (drop --worlds or --log)")
 
 
-def _prepare_sim(args: argparse.Namespace, profile: Any, detector: Any) -> tuple:
+def _prepare_sim(args: argparse.Namespace, profile: Profile, detector: Any) -> tuple:
     """The simulator as the source: held-out world seeds, one piece per scenario and world set."""
     from respecd.lab.experiment import latency as lat
     from respecd.lab.experiment.compare import world_sets
@@ -139,7 +142,7 @@ def _prepare_sim(args: argparse.Namespace, profile: Any, detector: Any) -> tuple
     return evaluator, sets, frames_for, extra
 
 
-def _people(evaluator: Any, profile: Any) -> Any:
+def _people(evaluator: Any, profile: Profile) -> Any:
     """How many persons a piece's world places (the statistics count them)."""
     return lambda piece: len(evaluator.world(piece, profile.simulation).state_at(0.0).targets)
 

@@ -18,13 +18,16 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from respecd.argtypes import non_negative_float, positive_float
 from respecd.heap import heap_mb
 from respecd.outputs import check_output_dir
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 MEDIAN_WINDOW_S = 120.0
 
@@ -94,7 +97,7 @@ def rss_slope(rows: list[dict[str, Any]], warmup_s: float) -> dict[str, Any]:
     }
 
 
-def _recorder(profile: Any, directory: str | None, clock: Any) -> Any:
+def _recorder(profile: Profile, directory: str | None, clock: Any) -> Any:
     if directory is None:
         return None
     from respecd.record.recorder import Recorder

@@ -28,7 +28,7 @@ from __future__ import annotations
 from collections import Counter
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -38,12 +38,15 @@ from respecd.lab.detector.metrics import ImageResult, average_precision
 from respecd.lab.experiment.rollout import Piece, Rollout, WindowRecord, controller_for
 from respecd.lab.experiment.stats import WorldBootstrap, counts
 
+if TYPE_CHECKING:
+    from respecd.config import Profile
+
 POLICIES = ("static", "heuristic", "rl")
 METRICS = ("map50", "compute_ms_per_s", "energy_j", "bandwidth_bps")
 Runs = list[list[WindowRecord]]  # one list of window records per world set
 
 
-def rl_controller(profile: Any, table_path: Path) -> Any:
+def rl_controller(profile: Profile, table_path: Path) -> Any:
     """An exploiting controller with the table at ``table_path`` (must match the profile's spaces)."""
     controller = controller_for(profile, "exploit")
     assert controller.table is not None  # exploit learns into a table
@@ -132,18 +135,18 @@ def summary(totals: dict[str, dict[str, Any]]) -> dict[str, Any]:
             "rl_vs_heuristic": _versus(totals["rl"], totals["heuristic"])}
 
 
-def _controllers(profile: Any, table_path: Path) -> dict[str, Any]:
+def _controllers(profile: Profile, table_path: Path) -> dict[str, Any]:
     return {"static": controller_for(profile, "static"), "heuristic": controller_for(profile, "heuristic"),
             "rl": rl_controller(profile, table_path)}
 
 
-def run_all(profile: Any, rollout: Rollout, pieces: list[Piece], table_path: Path,
+def run_all(profile: Profile, rollout: Rollout, pieces: list[Piece], table_path: Path,
             on_window: Callable[[str, WindowRecord], None] | None = None) -> dict[str, Any]:
     """Every policy over ``pieces`` (one world set)."""
     return run_sets(profile, rollout, [pieces], table_path, on_window)
 
 
-def run_sets(profile: Any, rollout: Rollout, sets: list[list[Piece]], table_path: Path,
+def run_sets(profile: Profile, rollout: Rollout, sets: list[list[Piece]], table_path: Path,
              on_window: Callable[[str, WindowRecord], None] | None = None,
              people: Callable[[Piece], int] | None = None) -> dict[str, Any]:
     """Every policy over every world set; the JSON body of ``respecd bench scenarios``.

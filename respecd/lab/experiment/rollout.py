@@ -35,7 +35,7 @@ import asyncio
 import zlib
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -55,6 +55,9 @@ from respecd.perception.attribution import SceneScores
 from respecd.replay.lockstep import LockstepClock, LockstepLoop
 from respecd.sensors import Capabilities, clamp_request
 from respecd.sim.world import World
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 
 @dataclass(frozen=True)
@@ -119,7 +122,7 @@ class ModelledLoad:
         return SystemSample(None, min(busy, 1.0), None, busy)
 
 
-def controller_for(profile: Any, policy: str) -> Controller:
+def controller_for(profile: Profile, policy: str) -> Controller:
     """The controller the daemon would build for ``profile`` over simulated sensors."""
     from respecd.drivers.sim import CAPABILITIES
 
@@ -131,7 +134,7 @@ def controller_for(profile: Any, policy: str) -> Controller:
 class Rollout:
     """Runs a controller over pieces on cached detector outcomes."""
 
-    def __init__(self, profile: Any, evaluator: Evaluator, latency: dict[tuple[int, int], Latency],
+    def __init__(self, profile: Profile, evaluator: Evaluator, latency: dict[tuple[int, int], Latency],
                  samples_per_s: float = 1.0) -> None:
         from respecd.drivers.sim import CAPABILITIES
 

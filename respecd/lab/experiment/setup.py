@@ -4,7 +4,7 @@ with its cache, and the measured latency table."""
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import structlog
 
@@ -12,11 +12,14 @@ from respecd.control.shipped import shipped_table_path
 from respecd.lab.experiment.cache import OutcomeCache, fingerprint, model_hash
 from respecd.lab.experiment.outcomes import Evaluator
 
+if TYPE_CHECKING:
+    from respecd.config import Profile
+
 __all__ = ["load_detector", "make_evaluator", "perception_identity", "rgb_resolutions", "shipped_table_path"]
 
 log = structlog.get_logger(__name__)
 
-def load_detector(profile: Any, weights: str | None = None, random_init: bool = False, seed: int = 0) -> Any:
+def load_detector(profile: Profile, weights: str | None = None, random_init: bool = False, seed: int = 0) -> Any:
     """The profile's detector (``weights`` overrides its checkpoint); ``random_init`` for tests."""
     import torch
 
@@ -35,7 +38,7 @@ def load_detector(profile: Any, weights: str | None = None, random_init: bool = 
     return FusionDetector.load(config, calibration)
 
 
-def perception_identity(detector: Any, profile: Any) -> dict[str, Any]:
+def perception_identity(detector: Any, profile: Profile) -> dict[str, Any]:
     """The perception settings that shape an outcome (not device or thread count)."""
     from respecd.perception.stage import calibration_from_profile
 
@@ -50,7 +53,7 @@ def perception_identity(detector: Any, profile: Any) -> dict[str, Any]:
     return identity
 
 
-def make_evaluator(detector: Any, profile: Any, use_cache: bool = True, directory: Path | None = None) -> Evaluator:
+def make_evaluator(detector: Any, profile: Profile, use_cache: bool = True, directory: Path | None = None) -> Evaluator:
     fp = fingerprint(model_hash(detector.model), perception_identity(detector, profile))
     cache = OutcomeCache.for_fingerprint(fp, directory, enabled=use_cache)
     log.info("outcome_cache", path=str(cache.path) if cache.path else None, fingerprint=fp, entries=len(cache))

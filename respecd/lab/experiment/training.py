@@ -4,6 +4,7 @@ An episode is the simulator's scenarios (the paper's six, then behind-curtain) i
 order, each for a random duration (whole decision periods between ``min_s`` and ``max_s``)
 on a world seed drawn from the training pool ``0 .. seeds-1`` (the benchmark uses seeds
 from ``EVAL_SEED`` on, never trained on).
+
 One Q-table is shared by all episodes; each episode starts a fresh controller around it
 (window, previous state and action reset, as a daemon restart would) and ε keeps decaying
 across episodes. The profile's reward, learning rate, discount and ε schedule are used as
@@ -16,13 +17,16 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from respecd.control.qlearning import QTable
 from respecd.lab.experiment.rollout import Piece, Rollout, controller_for
 from respecd.sim.config import SCENARIOS
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 EVAL_SEED = 1000  # benchmark worlds start here; training seeds stay below
 
@@ -57,7 +61,7 @@ def episode_pieces(settings: TrainSettings, rng: np.random.Generator, period: fl
     return pieces
 
 
-def train(profile: Any, rollout: Rollout, settings: TrainSettings, table: QTable | None = None,
+def train(profile: Profile, rollout: Rollout, settings: TrainSettings, table: QTable | None = None,
           on_episode: Callable[[int, TrainResult], None] | None = None,
           history: list[float] | None = None) -> TrainResult:
     """Run the episodes; returns the shared table and the learning curve.
