@@ -1,4 +1,5 @@
-"""Profiles: the shipped ones validate; bad ones give FILE:LINE: path: message, exit 2."""
+"""Profiles: the shipped ones and the lab's candidates validate; bad ones give FILE:LINE: path: message,
+exit 2. Overlays (``extends:``): tests/test_profile_overlay.py."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from respecd.errors import ConfigError
 from respecd.profile_schema import json_schema
 
 REPO = Path(__file__).resolve().parents[1]
+LAB_PROFILES = REPO / "respecd" / "lab" / "profiles"
 
 BAD = """\
 name: bad
@@ -38,8 +40,9 @@ def problems_of(tmp_path: Path, text: str) -> list[str]:
     return [p.replace(str(path), "P") for p in info.value.problems]
 
 
-@pytest.mark.parametrize("path", sorted((REPO / "configs").glob("*.yaml")), ids=lambda p: p.name)
-def test_shipped_profiles_validate(path):
+@pytest.mark.parametrize("path", sorted([*(REPO / "configs").glob("*.yaml"), *LAB_PROFILES.glob("*.yaml")]),
+                         ids=lambda p: p.name)
+def test_shipped_and_lab_profiles_validate(path):
     profile = load_profile(path)
     assert profile.sensors
 
@@ -49,11 +52,11 @@ def test_embedded_default_profile_loads_from_the_package():
 
 
 def _ablation_difference(name: str, key: str) -> tuple[object, object]:
-    """``controller.<key>`` of sim-rover and of ``configs/<name>.yaml``, after checking that
-    nothing else but the name differs: docs/RESULTS.md compares the two, and any other drift
-    would make that comparison unfair."""
+    """``controller.<key>`` of sim-rover and of the lab's candidate ``<name>.yaml``, after checking
+    that nothing else but the name differs: docs/RESULTS.md compares the two, and any other drift
+    (an overlay writing one key too many) would make that comparison unfair."""
     base = load_profile("builtin:sim-rover").model_dump()
-    ablation = load_profile(REPO / "configs" / f"{name}.yaml").model_dump()
+    ablation = load_profile(LAB_PROFILES / f"{name}.yaml").model_dump()
     base_value, ablation_value = base["controller"].pop(key), ablation["controller"].pop(key)
     assert ablation.pop("name") == name and base.pop("name") == "sim-rover"
     assert ablation == base
@@ -175,17 +178,20 @@ def test_schema_command_prints_the_profile_schema():
 
 def test_shipped_schema_file_is_current():
     """The profiles point yaml-language-server at profile.schema.json beside them (configs/ links
-    docs/profile.schema.json; the wheel ships it): keep it in step."""
+    docs/profile.schema.json; the wheel ships it), the lab's at docs/: keep it in step."""
     assert (REPO / "configs" / "profile.schema.json").resolve() == (REPO / "docs" / "profile.schema.json").resolve()
     for profile in (REPO / "configs").glob("*.yaml"):
         assert profile.read_text().startswith("# yaml-language-server: $schema=profile.schema.json\n"), profile
+    for profile in LAB_PROFILES.glob("*.yaml"):
+        header = profile.read_text().splitlines()[0]
+        assert header == "# yaml-language-server: $schema=../../../docs/profile.schema.json", profile
     shipped = json.loads((REPO / "docs" / "profile.schema.json").read_text())
     assert shipped == json.loads(json.dumps(json_schema())), "run: respecd schema --out docs/profile.schema.json"
 
 
 def test_averaged_candidate_differs_from_m44_only_in_the_step_size_floor():
-    m44 = load_profile(REPO / "configs" / "sim-rover-per-sensor-slowest-44-immediate.yaml").model_dump()
-    averaged = load_profile(REPO / "configs" / "sim-rover-per-sensor-slowest-44-averaged.yaml").model_dump()
+    m44 = load_profile(LAB_PROFILES / "sim-rover-per-sensor-slowest-44-immediate.yaml").model_dump()
+    averaged = load_profile(LAB_PROFILES / "sim-rover-per-sensor-slowest-44-averaged.yaml").model_dump()
     assert averaged.pop("name") == "sim-rover-per-sensor-slowest-44-averaged"
     m44.pop("name")
     m44_learning, averaged_learning = m44["controller"].pop("learning"), averaged["controller"].pop("learning")

@@ -41,8 +41,10 @@ def _spawn(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
 
 
 def test_shipped_sim_profiles_pass_the_machine_checks(tmp_path: Path) -> None:
-    for name in ("sim-rover", "sim-rover-no-load", "sim-rover-paper-reward"):
-        assert check_profile(read_profile(REPO / "configs" / f"{name}.yaml"), tmp_path) == []
+    lab = REPO / "respecd" / "lab" / "profiles"
+    for path in (REPO / "configs" / "sim-rover.yaml", lab / "sim-rover-no-load.yaml",
+                 lab / "sim-rover-paper-reward.yaml"):
+        assert check_profile(read_profile(path), tmp_path) == []
 
 
 def test_missing_weights_are_named_with_their_line(tmp_path: Path) -> None:

@@ -18,6 +18,8 @@ from respecd.errors import ConfigError
 from respecd.profile_schema import json_schema
 
 REPO = Path(__file__).resolve().parents[1]
+LAB_PROFILES = REPO / "respecd" / "lab" / "profiles"
+MAX_OVERLAY_LINES = 25
 
 
 def write(path: Path, text: str) -> Path:
@@ -207,6 +209,23 @@ sensors:
         f"{whole}:1: name: required key is missing",
         f"{whole}:1: sensors: required key is missing",
     ]
+
+
+# -- the shipped overlays ---------------------------------------------------------------------------
+
+def _overlays() -> list[Path]:
+    files = [*(REPO / "configs").glob("*.yaml"), *LAB_PROFILES.glob("*.yaml")]
+    return sorted(f for f in files if "\nextends:" in f.read_text())
+
+
+def test_every_lab_candidate_is_a_small_overlay_that_resolves_and_matches_the_schema(capsys):
+    assert set(LAB_PROFILES.glob("*.yaml")) <= set(_overlays())
+    assert any(p.parent.name == "configs" for p in _overlays())
+    for path in _overlays():
+        assert len(path.read_text().splitlines()) <= MAX_OVERLAY_LINES, path
+        assert load_profile(path).name == path.stem
+        assert cli(["schema", "--validate", str(path)]) == 0, capsys.readouterr().err
+    assert not [p for p in (REPO / "configs").glob("sim-rover-*.yaml")], "candidates live in respecd/lab/profiles"
 
 
 @pytest.mark.e2e

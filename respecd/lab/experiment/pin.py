@@ -10,8 +10,8 @@ learned, or a hedge against what the same states lead to in other worlds (a stil
 walking) — docs/RESULTS.md "Where the agent wins and where it loses".
 
 usage: respecd experiment pin good-light-static --seeds 500,507,514 \\
-           --profile configs/sim-rover-per-sensor-slowest-44-immediate.yaml --latency docs/reference-latency.json \\
-           "rgb 640x360@1Hz"
+           --profile respecd/lab/profiles/sim-rover-per-sensor-slowest-44-immediate.yaml \\
+           --latency docs/reference-latency.json "rgb 640x360@1Hz"
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ value, and how many of them led into a state with another motion bin (a still st
 walking). With ``--resume`` only this run's updates are traced (the loaded values arrive without any).
 
 usage: respecd train-policy --trace bright/still/dense/medium/good/high/rgb --trace-block rgb \\
-           --profile configs/sim-rover-per-sensor-slowest-44-immediate.yaml --episodes 54 --seeds 4 \\
+           --profile respecd/lab/profiles/sim-rover-per-sensor-slowest-44-immediate.yaml --episodes 54 --seeds 4 \\
            --min-s 10 --max-s 20 --seed 0 --latency docs/reference-latency.json --out T.npz [--trace-json TRACE]
 """
 
