@@ -18,7 +18,7 @@ from respecd.errors import ConfigError, InputError, report
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "check-config": ("respecd.cli.check_config", "validate profiles; print FILE:LINE: problems, exit 2 if any"),
-    "schema": ("respecd.cli.schema", "print the profile JSON Schema (for yaml-language-server)"),
+    "schema": ("respecd.cli.schema", "print the profile JSON Schema (for editors), or check files against it"),
     "bench": ("respecd.cli.bench", "run a benchmark, print figures, write JSON"),
     "experiment": ("respecd.cli.experiment", "diagnose the controller on simulated worlds: what a configuration "
                    "is worth (fixed), a table with one sensor pinned (pin), static below its maximum (probe), "
