@@ -14,13 +14,13 @@ from respecd.perception.attribution import (
     Attributor,
     SceneScores,
     box_channel_sums,
-    candidate_windows,
     grouped,
     scene_score,
 )
 from respecd.perception.config import ModelSpec, PerceptionConfig
 from respecd.perception.detector import FusionDetector
 from respecd.perception.model import FusionNet
+from respecd.perception.split import candidate_windows
 
 TINY = ModelSpec(rgb_widths=(8, 8, 16, 16, 16), aux_widths=(8, 8, 8, 8, 8), neck_widths=(16, 16, 16))
 

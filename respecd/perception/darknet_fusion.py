@@ -106,23 +106,36 @@ class DarknetFusionNet(nn.Module):
 
         Returns the raw yolo maps (B, anchors x (5 + nc), H/s, W/s), one per [yolo] layer.
         """
-        b, _, h, w = x.shape
         if presence is None:
-            presence = x.new_ones(b, x.shape[1] - 3)
-        rgb: dict[int, torch.Tensor] = {}
-        if bool((x[:, :3] == 0).all()) and not self.rgb.training:
-            rgb = {t: f.expand(b, -1, -1, -1) for t, f in self.black_features(h, w, x).items()}  # RGB off: no pass
-        else:
-            self.rgb.run(x[:, :3], 0, self.split, rgb)
-        aux = self.aux_features(x[:, 3:], presence)
-        empty = self.empty_features(h, w, x)
-        gate = (presence.amax(1) > 0).to(x.dtype)[:, None, None, None] if presence.shape[1] else x.new_zeros(b, 1, 1, 1)
+            presence = x.new_ones(x.shape[0], x.shape[1] - 3)
+        return self.fuse_taps(self.encode_rgb(x[:, :3]), self.encode_aux(x[:, 3:], presence))
+
+    def encode_rgb(self, rgb: torch.Tensor) -> dict[int, torch.Tensor]:
+        """(B, 3, H, W) -> backbone 1's features at the fusion taps (a black image's: cached, no pass)."""
+        b, _, h, w = rgb.shape
+        if bool((rgb == 0).all()) and not self.rgb.training:
+            return {t: f.expand(b, -1, -1, -1) for t, f in self.black_features(h, w, rgb).items()}
+        store: dict[int, torch.Tensor] = {}
+        self.rgb.run(rgb, 0, self.split, store)
+        return {t: store[t] for t in self.taps}
+
+    def encode_aux(self, planes: torch.Tensor, presence: torch.Tensor) -> dict[int, torch.Tensor]:
+        """(B, A, H, W) aux planes and (B, A) flags -> ``g * (aux - a0)`` at backbone 2's taps (module doc)."""
+        b, _, h, w = planes.shape
+        aux = self.aux_features(planes, presence)
+        empty = self.empty_features(h, w, planes)
+        gate = (presence.amax(1) > 0).to(planes.dtype)[:, None, None, None] if presence.shape[1] \
+            else planes.new_zeros(b, 1, 1, 1)
+        return {a: gate * (aux[a] - empty[a]) for a in self.aux_taps}
+
+    def fuse_taps(self, rgb: dict[int, torch.Tensor], evidence: dict[int, torch.Tensor]) -> list[torch.Tensor]:
+        """Both backbones' tap features (``encode_rgb``, ``encode_aux``) -> 1x1 fusion -> head: the raw yolo maps."""
         store: dict[int, torch.Tensor] = {}
         for t, a, fuse in zip(self.taps, self.aux_taps, self.fuse, strict=True):
-            evidence = aux[a] - empty[a]
-            if evidence.shape[-2:] != rgb[t].shape[-2:]:
-                evidence = F.interpolate(evidence, size=rgb[t].shape[-2:], mode="bilinear", align_corners=False)
-            store[t] = fuse(rgb[t], gate * evidence)
+            aux = evidence[a]
+            if aux.shape[-2:] != rgb[t].shape[-2:]:
+                aux = F.interpolate(aux, size=rgb[t].shape[-2:], mode="bilinear", align_corners=False)
+            store[t] = fuse(rgb[t], aux)
         self.head.run(None, self.split, len(self.head.layers), store)
         return [store[i] for i in self.head.yolo_indices]
 
