@@ -101,6 +101,9 @@ class Percept:
     contributions: dict[str, float] | None  # scene score per modality; None when not computed
     latency: float  # seconds spent on inference (+ attribution when computed)
     bundle: Bundle | None = None  # the input, for scene statistics downstream
+    # Beside the contributions, per modality, from the same attribution (None when not computed or no detection):
+    dependence: dict[str, float] | None = None  # share of the detections' confidence lost with it off
+    sufficiency: dict[str, float] | None = None  # share of it kept with only that modality on
 
 
 @dataclass(frozen=True, slots=True)

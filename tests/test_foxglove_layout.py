@@ -35,3 +35,22 @@ def test_layout_topics_are_recorded_channels() -> None:
     recorded = {"/sensors/rgb", "/sensors/rgb/calibration", "/sensors/thermal/colormap", "/sensors/radar",
                 "/respecd/detections", "/respecd/percept", "/respecd/decision", "/respecd/config"}
     assert _topics(json.loads(SHIPPED.read_text())) == recorded
+
+
+def test_percept_plots_read_fields_the_percept_channel_has() -> None:
+    """Each plotted ``/respecd/percept.FIELD...`` is a field of respecd.Percept: dependence and sufficiency beside
+    the contributions."""
+    from respecd.record.schemas import PERCEPT
+
+    paths = _values(json.loads(SHIPPED.read_text()))
+    fields = {path.split(".")[1] for path in paths if path.startswith("/respecd/percept.")}
+    assert fields == {"contributions", "dependence", "sufficiency", "conf_agg"} and fields <= set(PERCEPT["properties"])
+
+
+def _values(node: object) -> list[str]:
+    if isinstance(node, dict):
+        return [v for k, v in node.items() if k == "value" and isinstance(v, str)] + [
+            x for v in node.values() for x in _values(v)]
+    if isinstance(node, list):
+        return [x for item in node for x in _values(item)]
+    return []

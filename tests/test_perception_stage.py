@@ -52,6 +52,8 @@ async def test_stage_runs_detector_in_one_worker_thread_at_the_cadence() -> None
     stage = PerceptionStage(config, calibration=None, clock=ManualClock(), detector=detector)
     bundles: DropOldestQueue[Bundle] = DropOldestQueue(4)
     percepts = DropOldestQueue(8)
+    shown = []  # the status line's percept after each inference
+    stage.on_inference.append(lambda _: shown.append(stage.last))
     task = asyncio.create_task(stage.run(bundles, percepts), name="perception")
     received = []
     for seq, t in enumerate((0.0, 0.3, 0.6, 1.05, 1.2)):
@@ -69,6 +71,10 @@ async def test_stage_runs_detector_in_one_worker_thread_at_the_cadence() -> None
     assert received[0].contributions is not None and received[1].contributions is None
     assert stage.last is received[-1] and stage.processed == 5
     assert stage.last.contributions is not None
+    # RGB and thermal on (no radar frame): dependence and sufficiency of each come with the contributions
+    assert set(received[0].dependence) == set(received[0].sufficiency) == {"rgb", "thermal", "radar"}
+    assert received[0].sufficiency["radar"] == 0.0 and received[1].dependence is None
+    assert shown[2].dependence == received[0].dependence and shown[2].sufficiency == received[0].sufficiency
     assert all(p.latency > 0 for p in received)
     assert not any(t.name.startswith("perception") for t in threading.enumerate())
 

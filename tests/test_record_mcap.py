@@ -55,6 +55,9 @@ def _validate(value: Any, schema: dict[str, Any], path: str = "$") -> None:
         for key, sub in schema.get("properties", {}).items():
             if key in value:
                 _validate(value[key], sub, f"{path}.{key}")
+        if isinstance(schema.get("additionalProperties"), dict):
+            for key in set(value) - set(schema.get("properties", {})):
+                _validate(value[key], schema["additionalProperties"], f"{path}.{key}")
     if isinstance(value, list) and "items" in schema:
         for i, item in enumerate(value):
             _validate(item, schema["items"], f"{path}[{i}]")
@@ -90,7 +93,9 @@ async def _record(tmp_path: Path, n: int = 45, **overrides: Any) -> tuple[Record
         if i % 15 == 0:
             detections = (Detection((1, 2, 30, 40), 0.8),)
             bundle = Bundle(i / 30, {"rgb": frames["cam"]}, SyncStats(30.0, 0.1, 0.0, Health.GOOD), i)
-            recorder.on_percept(Percept(i / 30, detections, 0.8, {"rgb": 0.6, "thermal": 0.4}, 0.02, bundle))
+            attributed = {"dependence": {"rgb": 0.1, "thermal": 0.05}, "sufficiency": {"rgb": 0.9, "thermal": 0.8}}
+            recorder.on_percept(Percept(i / 30, detections, 0.8, {"rgb": 0.6, "thermal": 0.4}, 0.02, bundle,
+                                        **(attributed if i else {})))
             recorder.on_decision(Decision(i / 30, (0, 1, 2, 0, 0, 1), 4, -0.1, 0.2, (0.0, 0.5)))
             recorder.on_config("cam", SensorConfig("rgb", True, 15.0, (640, 360)))
         await asyncio.sleep(0.002)  # let the writer keep up: this test is not about drops
@@ -109,7 +114,7 @@ async def test_log_opens_with_mcap_reader_and_decodes_with_foxglove_schemas(tmp_
         assert json.loads(metadata["respecd.profile"]["json"])["name"] == "test-rig"
         seen: dict[str, int] = {}
         image_stamps: dict[int, Any] = {}
-        overlays, metas = [], {}
+        overlays, metas, percepts = [], {}, []
         for schema, channel, message in reader.iter_messages():
             seen[schema.name] = seen.get(schema.name, 0) + 1
             if schema.name.startswith("foxglove."):
@@ -120,6 +125,9 @@ async def test_log_opens_with_mcap_reader_and_decodes_with_foxglove_schemas(tmp_
                 _validate(body, json.loads(schema.data))
             if channel.topic.endswith("/meta"):
                 metas[channel.topic.removesuffix("/meta"), message.log_time] = body
+            if channel.topic == "/respecd/percept":
+                percepts.append(body)
+                assert set(body) <= set(json.loads(schema.data)["properties"])  # every field declared
             if channel.topic == "/respecd/detections":
                 overlays.append(body)
                 assert channel.metadata == {"image_topic": "/sensors/cam"}
@@ -139,6 +147,9 @@ async def test_log_opens_with_mcap_reader_and_decodes_with_foxglove_schemas(tmp_
     assert seen["respecd.Decision"] == 3 and seen["respecd.SensorConfig"] == 3
     assert seen["foxglove.FrameTransforms"] >= 2 and seen["foxglove.CameraCalibration"] >= 1
     assert len(overlays) == 3  # detections drawn over the very RGB frame they came from
+    # beside the contributions, what each sensor's detections depend on (null when not attributed)
+    assert [p["dependence"] for p in percepts] == [None] + [{"rgb": 0.1, "thermal": 0.05}] * 2
+    assert percepts[1]["sufficiency"] == {"rgb": 0.9, "thermal": 0.8} and percepts[0]["sufficiency"] is None
     assert _stamp(overlays[1].points[0].timestamp) == image_stamps[15] == _stamp(overlays[1].timestamp)
     assert [(p.x, p.y) for p in overlays[1].points[0].points][2] == (30.0, 40.0)
     assert [t.text for t in overlays[1].texts] == ["person 0.80"]

@@ -6,9 +6,11 @@ exactly as the daemon feeds a disabled sensor (zero plane, presence 0), through 
 confidence in a subset is the best one of its class among the anchors whose box overlaps it with
 IoU >= 0.5, wherever the net now places it (with a sensor off a neighbouring anchor often takes
 the detection over). The subsets run, for the sensors that are on: each one off (its *dependence*:
-the confidence lost), each one alone (its *sufficiency*: the confidence it keeps alone), and none
-(a constant per input size). With M <= 3 sensors on that is every subset, so the exact Shapley
-value over sensors (``shapley``) needs no more passes.
+the confidence lost), and each one alone (its *sufficiency*: the confidence it keeps alone). With
+two sensors on, each alone is the other one off: no pass more. With three or more, each alone is
+one fusion pass more per sensor, run only when asked (``alone=True``); then nothing on is run
+too (a constant per input size), and with at most three sensors on that is every subset, so the
+exact Shapley value over sensors (``shapley``) needs no pass more.
 
 Two sensors that each suffice are redundant: each alone keeps the detection (high sufficiency),
 and turning either off costs little (low dependence). The normalized drops (the controller's
@@ -39,7 +41,7 @@ class Ablation:
     on: Subset  # the sensors that were on
     base: torch.Tensor  # (K,) confidence with every sensor on
     drops: torch.Tensor  # (K, M) confidence lost with that sensor off (0 for a sensor already off)
-    alone: torch.Tensor  # (K, M) confidence with only that sensor on (0 for a sensor already off)
+    alone: torch.Tensor | None  # (K, M) confidence with only that sensor on (0 for one already off); None: not run
     subsets: dict[Subset, torch.Tensor]  # (K,) confidence per subset run, the all-on one included
 
 
@@ -58,19 +60,20 @@ class SubsetRunner:
         frame = _Frame(self, x, presence)
         return self.split.detect(frame.rgb_on, frame.aux_on, frame.hw), frame
 
-    def ablate(self, frame: _Frame, targets: torch.Tensor, labels: torch.Tensor, base: torch.Tensor) -> Ablation:
-        """Each sensor that is on switched off, and alone; and nothing on."""
+    def ablate(self, frame: _Frame, targets: torch.Tensor, labels: torch.Tensor, base: torch.Tensor,
+               alone: bool = False) -> Ablation:
+        """Each sensor that is on switched off; each one alone where that is free or ``alone`` asks (module doc)."""
         on = frame.on
         confidence: dict[Subset, torch.Tensor] = {on: base}
-        for subset in needed_subsets(on):
+        for subset in needed_subsets(on, alone):
             boxes, probabilities = self._scored(frame, subset, targets)
             confidence[subset] = box_confidence(boxes[0], probabilities[0], targets, labels)
-        drops, alone = torch.zeros(len(base), len(self.modalities)), torch.zeros(len(base), len(self.modalities))
+        drops, kept = torch.zeros(len(base), len(self.modalities)), torch.zeros(len(base), len(self.modalities))
         for m, name in enumerate(self.modalities):
             if name in on:
                 drops[:, m] = base - confidence[on - {name}]
-                alone[:, m] = confidence[frozenset({name})]
-        return Ablation(self.modalities, on, base, drops, alone, confidence)
+                kept[:, m] = confidence.get(frozenset({name}), torch.nan)
+        return Ablation(self.modalities, on, base, drops, None if kept.isnan().any() else kept, confidence)
 
     def _scored(self, frame: _Frame, subset: Subset, targets: torch.Tensor) -> Scored:
         if not subset:  # nothing on: the same output for every frame of this size
@@ -101,8 +104,7 @@ class _Frame:
         self.runner, self.x, self.presence = runner, x, presence
         self.hw: tuple[int, int] = (int(x.shape[2]), int(x.shape[3]))
         self.key = (self.hw, x.dtype, x.device)
-        aux_on = [n for i, n in enumerate(runner.modalities[1:]) if float(presence[0, i]) > 0]
-        self.on: Subset = frozenset((["rgb"] if bool(x[:, :3].any()) else []) + aux_on)
+        self.on = sensors_on(runner.modalities, x, presence)
         self.rgb_on = runner.split.encode_rgb(x[:, :3])
         self.aux_on = runner.split.encode_aux(x[:, 3:], presence)
         self._aux: dict[Subset, object] = {self.on - {"rgb"}: self.aux_on}
@@ -120,10 +122,22 @@ class _Frame:
         return self._aux[wanted]
 
 
-def needed_subsets(on: Subset) -> list[Subset]:
-    """Besides all of ``on``: each sensor off, each sensor alone, and nothing on (each once)."""
+def sensors_on(modalities: tuple[str, ...], x: torch.Tensor, presence: torch.Tensor) -> Subset:
+    """The sensors of a (1, 3 + A, H, W) input that are on: RGB unless its planes are all zero, an aux
+    modality when its presence flag is set (a radar that sees nothing is on)."""
+    aux = [n for i, n in enumerate(modalities[1:]) if float(presence[0, i]) > 0]
+    return frozenset((["rgb"] if bool(x[:, :3].any()) else []) + aux)
+
+
+def needed_subsets(on: Subset, alone: bool = False) -> list[Subset]:
+    """Besides all of ``on``: each sensor off; with ``alone``, or at most two sensors on (free then), each
+    sensor alone; with ``alone``, nothing on. Each subset once."""
     ordered = sorted(on)
-    wanted = [on - {n} for n in ordered] + [frozenset({n}) for n in ordered] + [frozenset()]
+    wanted = [on - {n} for n in ordered]
+    if alone or len(on) <= 2:
+        wanted += [frozenset({n}) for n in ordered]
+    if alone:
+        wanted.append(frozenset())
     return [s for i, s in enumerate(wanted) if s != on and s not in wanted[:i]]
 
 

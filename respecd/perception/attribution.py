@@ -12,7 +12,9 @@ confidence-weighted mean over targets. Two methods (profile ``perception.attribu
   Beside them, per sensor, the scene's *dependence* (the share of the targets' confidence lost
   with the sensor off) and *sufficiency* (the share it keeps with only that sensor on): two
   sensors that each suffice show high sufficiency and low dependence each, which the
-  normalized drops cannot show. docs/PERCEPTION.md has the cost.
+  normalized drops cannot show. Sufficiency is free with two sensors on (each alone is the
+  other one off); with more it costs a fusion pass per sensor, run when ``sufficiency`` is
+  ``"always"`` (``"auto"``: only when free). docs/PERCEPTION.md has the cost.
 * ``gradient`` (the paper's): the pre-NMS confidences of the K anchors back-propagated to the
   input; |gradient x input| summed over each box per channel. One backward pass serves all
   K targets (the gradient of the sum of their confidences), so overlapping boxes share some
@@ -37,6 +39,7 @@ from respecd.perception.split import as_split
 RGB_CHANNELS = ("r", "g", "b")
 Method = Literal["ablation", "gradient"]
 METHODS: tuple[Method, ...] = ("ablation", "gradient")
+Sufficiency = Literal["auto", "always"]  # profile ``perception.attribution_sufficiency``
 Detections = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]  # boxes, scores, labels, anchors
 
 
@@ -94,11 +97,12 @@ class Attributor:
     size), so build one per model and keep it.
     """
 
-    def __init__(self, model: Any, method: Method = "ablation") -> None:
+    def __init__(self, model: Any, method: Method = "ablation", sufficiency: Sufficiency = "auto") -> None:
         if method not in METHODS:
             raise ValueError(f"attribution method {method!r}: expected one of {', '.join(METHODS)}")
         self.model: Any = model  # for ``gradient``: a torch net with spec, forward(x, presence), decode(raw, hw)
         self.method = method
+        self.always_alone = sufficiency == "always"
         self.modalities = ("rgb", *model.spec.aux_modalities)
         self.subsets = SubsetRunner(as_split(model))
 
@@ -115,12 +119,12 @@ class Attributor:
             if len(dets[1]) == 0:
                 return Attribution(dets, self.modalities, None, None, None)
             k = min(top_k, len(dets[1]))  # postprocess sorts by score: these are the top K
-            ablation = self.subsets.ablate(frame, dets[0][:k], dets[2][:k], dets[1][:k])
+            ablation = self.subsets.ablate(frame, dets[0][:k], dets[2][:k], dets[1][:k], self.always_alone)
         shares = _normalized(ablation.drops.clamp(min=0.0))
         scene = scene_score(shares, ablation.base)
         return Attribution(dets, self.modalities, shares, ablation.drops, self._named(scene), ablation,
                            self._named(kept_share(ablation.drops, ablation.base)),
-                           self._named(kept_share(ablation.alone, ablation.base)))
+                           None if ablation.alone is None else self._named(kept_share(ablation.alone, ablation.base)))
 
     def _named(self, vector: torch.Tensor | None) -> dict[str, float] | None:
         return None if vector is None else dict(zip(self.modalities, vector.tolist(), strict=True))

@@ -108,6 +108,12 @@ class PerceptionConfig(StrictModel):
         description="Contribution method: 'ablation' (confidence lost with each sensor off; faithful, about 2x a "
         "forward) or 'gradient' (the paper's gradient x input; one backward pass). See docs/PERCEPTION.md.",
     )
+    attribution_sufficiency: Literal["auto", "always"] = Field(
+        "auto",
+        description="ablation: each sensor's sufficiency (the confidence it keeps alone) is free with two sensors "
+        "on; with more, 'always' runs one more fusion pass per sensor for it, 'auto' leaves it out. See "
+        "docs/PERCEPTION.md.",
+    )
     attribution_targets: int = Field(
         5, ge=1, le=50, description="Top detections whose confidences are attributed to the input channels."
     )

@@ -10,6 +10,7 @@ presence flag 0.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 
 import numpy as np
 import structlog
@@ -29,6 +30,16 @@ from respecd.sensors import Calibration
 log = structlog.get_logger(__name__)
 
 
+@dataclass(frozen=True)
+class Inference:
+    """``FusionDetector.run``'s answer: the detections and, when attributed, the scene's numbers per modality."""
+
+    detections: tuple[Detection, ...]
+    contributions: dict[str, float] | None = None  # the held scene score (``SceneScores``)
+    dependence: dict[str, float] | None = None  # this frame's, None without a detection to attribute
+    sufficiency: dict[str, float] | None = None
+
+
 class FusionDetector:
     """Aligner + FusionNet + NMS + attribution, with the scene score kept between calls."""
 
@@ -42,7 +53,7 @@ class FusionDetector:
         self.model = fold.for_inference(model, self.device)  # the daemon never trains its detector
         self.channels = model.spec.channels
         self.aligner = Aligner(config, calibration)
-        self.attributor = Attributor(self.model, config.attribution_method)
+        self.attributor = Attributor(self.model, config.attribution_method, config.attribution_sufficiency)
         self.scores = self.scene_scores()
 
     @classmethod
@@ -73,17 +84,19 @@ class FusionDetector:
         start = time.perf_counter()
         aligned = self.prepare(frames)
         t = max((f.t for f in frames.values()), default=0.0)
-        detections, contributions = self.run(aligned, attribute, t)
+        result = self.run(aligned, attribute, t)
         return Percept(
             t=t,
-            detections=detections,
-            conf_agg=conf_agg([d.confidence for d in detections]),
-            contributions=contributions,
+            detections=result.detections,
+            conf_agg=conf_agg([d.confidence for d in result.detections]),
+            contributions=result.contributions,
             latency=time.perf_counter() - start,
+            dependence=result.dependence,
+            sufficiency=result.sufficiency,
         )
 
-    def run(self, aligned: AlignedInput, attribute_now: bool, t: float = 0.0):
-        """Network + NMS (+ attribution) on an aligned input -> (detections, contributions | None)."""
+    def run(self, aligned: AlignedInput, attribute_now: bool, t: float = 0.0) -> Inference:
+        """Network + NMS (+ attribution) on an aligned input."""
         x = fold.channels_last(torch.from_numpy(aligned.tensor).unsqueeze(0).to(self.device))  # (1, C, Hp, Wp)
         presence = torch.from_numpy(aligned.presence).unsqueeze(0).to(self.device)  # (1, A)
         cfg = self.config
@@ -92,11 +105,12 @@ class FusionDetector:
                 boxes, scores = self.model.decode(self.model(x, presence), tuple(x.shape[2:]))
                 dets = postprocess(boxes, scores, tuple(x.shape[2:]), cfg.score_threshold, cfg.iou_threshold,
                                    cfg.max_detections)[0]
-            return self._detections(dets, None, aligned.size), None
+            return Inference(self._detections(dets, None, aligned.size))
         result = self.attributor(x, presence, cfg.score_threshold, cfg.iou_threshold, cfg.max_detections,
                                  cfg.attribution_targets)
         contributions = self.scores.update(t, result.scene)
-        return self._detections(result.detections, result, aligned.size), contributions
+        return Inference(self._detections(result.detections, result, aligned.size), contributions,
+                         result.dependence, result.sufficiency)
 
     def _detections(self, dets, attribution: Attribution | None, size: tuple[int, int]) -> tuple[Detection, ...]:
         boxes, scores, labels, _ = dets

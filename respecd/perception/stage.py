@@ -64,8 +64,9 @@ class PerceptionStage:
     The checkpoint is loaded by ``load`` before the session starts the pipeline, so a bad or
     mismatched one fails the start (exit 2) rather than a supervised task; the session races
     it against a stop signal. ``last`` is the newest Percept for the status line,
-    with the most recent scene contributions carried over between attributions (the
-    Percepts on the queue keep ``contributions=None`` when not attributed).
+    with the most recent attribution's scene numbers (contributions, dependence, sufficiency)
+    carried over between attributions (the Percepts on the queue keep ``contributions=None``
+    when not attributed).
     """
 
     def __init__(self, config: PerceptionConfig, calibration: Mapping[str, Calibration | None] | None,
@@ -80,7 +81,7 @@ class PerceptionStage:
         self.on_inference: list[Callable[[Percept], None]] = []  # as produced, before any latency model
         self._detector = detector
         self._busy_until = float("-inf")
-        self._contributions: dict[str, float] | None = None
+        self._attributed: Percept | None = None  # the newest percept with contributions
         self._executor: ThreadPoolExecutor | None = None
         self._attribution_requested = False
         self._on_request_only = False
@@ -136,9 +137,7 @@ class PerceptionStage:
                     modelled = self.latency_model.predict(bundle, attribute)
                     percept = await self._infer_beside_the_clock(frames, attribute, taken + modelled)
                 percept = dataclasses.replace(percept, t=bundle.t, bundle=bundle)
-                self._contributions = percept.contributions or self._contributions
-                shown = percept if percept.contributions is not None else None
-                self.last = shown or dataclasses.replace(percept, contributions=self._contributions)
+                self.last = self._with_last_attribution(percept)
                 self.processed += 1
                 for hook in self.on_inference:
                     hook(percept)
@@ -174,6 +173,16 @@ class PerceptionStage:
         deadline = asyncio.get_running_loop().time() + SHUTDOWN_TIMEOUT_S
         while any(t.is_alive() for t in threads) and asyncio.get_running_loop().time() < deadline:
             await asyncio.sleep(0.01)
+
+    def _with_last_attribution(self, percept: Percept) -> Percept:
+        """``percept``, carrying the newest attribution's scene numbers when it has none of its own."""
+        if percept.contributions:
+            self._attributed = percept
+        if percept.contributions is not None or self._attributed is None:
+            return percept
+        held = self._attributed
+        return dataclasses.replace(percept, contributions=held.contributions, dependence=held.dependence,
+                                   sufficiency=held.sufficiency)
 
     def _load(self) -> Any:
         """Set torch's (process-wide) intra-op thread count and load the checkpoint."""

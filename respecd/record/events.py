@@ -38,6 +38,8 @@ def encode_percept(p: Percept) -> bytes:
         "conf_agg": p.conf_agg,
         "latency_s": p.latency,
         "contributions": p.contributions,
+        "dependence": p.dependence,
+        "sufficiency": p.sufficiency,
         "detections": [
             {"box": list(d.box), "confidence": d.confidence, "label": d.label} for d in p.detections
         ],

@@ -101,7 +101,12 @@ PERCEPT: dict[str, Any] = {
         "t": _NUMBER,
         "conf_agg": _NUMBER,
         "latency_s": _NUMBER,
-        "contributions": {"type": ["object", "null"], "additionalProperties": _NUMBER},
+        "contributions": {"type": ["object", "null"], "additionalProperties": _NUMBER,
+                          "description": "Per modality, normalized to sum 1: what the controller reads"},
+        "dependence": {"type": ["object", "null"], "additionalProperties": _NUMBER,
+                       "description": "Per modality, 0..1: share of the detections' confidence lost with it off"},
+        "sufficiency": {"type": ["object", "null"], "additionalProperties": _NUMBER,
+                        "description": "Per modality, 0..1: share of the detections' confidence kept with only it on"},
         "detections": {
             "type": "array",
             "items": {

@@ -38,7 +38,8 @@ SOURCE_MODULES = {
     "respecd.control": ("features.py", "imagestats.py"),
     "respecd.sim": ("camera.py", "radar_model.py", "render.py", "scenarios.py", "state.py", "textures.py",
                     "world.py"),
-    "respecd.perception": ("align.py", "attribution.py", "boxes.py", "calibration.py", "detector.py", "model.py"),
+    "respecd.perception": ("ablation.py", "align.py", "attribution.py", "boxes.py", "calibration.py",
+                           "darknet_fusion.py", "detector.py", "model.py", "split.py"),
     "respecd.lab.experiment": ("frames.py", "outcomes.py"),
 }
 
