@@ -74,9 +74,17 @@ def test_eval_command_on_real_llvip_pairs(shared_data, tmp_path: Path, capsys) -
     assert isinstance(report["detections"], int) and isinstance(report["detections_without_rgb"], int)
     assert set(report["contributions"]) >= {"rgb", "thermal"}  # flat: the mean scene scores
     assert report["contributions_by_condition"]["all"] == report["contributions"]
+    for key in ("dependence", "sufficiency", "shapley"):  # per sensor, beside the contributions
+        assert set(report[key]) == {"rgb", "thermal", "radar"} and report[key]["radar"] == 0.0  # LLVIP: no radar
+        assert report[f"{key}_by_condition"]["all"] == report[key]
+    assert all(0 <= report[key][m] <= 1 for key in ("dependence", "sufficiency") for m in ("rgb", "thermal"))
+    assert report["sufficiency"]["rgb"] + report["sufficiency"]["thermal"] > 0  # the net does find things alone
+    a, c, s = report["ablation"]["all"], report["contributions"], report["sufficiency"]  # perception-real's reads
+    assert {"none", "no_rgb", "no_thermal"} <= set(a) and "thermal" in c and {"rgb", "thermal"} <= set(s)
     assert (out / "contributions.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     text = (out / "eval.md").read_text()
     assert "| llvip_pairs | 6 |" in text and "mAP@0.5" in text
+    assert "kept with only it on (sufficiency)" in text
     assert "wrote" in capsys.readouterr().out
 
 

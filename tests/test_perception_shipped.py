@@ -74,3 +74,9 @@ def test_inference_bench_reports_every_resolution(monkeypatch) -> None:
     row = figures["resolutions"][0]
     assert row["rgb"] == "640x360" and row["forward_ms"] > 0 and row["attribution_ms"] > 0
     assert figures["model_params"] == 1_506_291
+    # the cost of the attribution as a share of a forward, per variant; the default's is the row's own
+    assert row["ratio"] == row["methods"]["ablation"]["ratio"] and row["cpu_ratio"] > 0
+    assert set(row["methods"]) == {"ablation", "ablation+sufficiency", "gradient"}
+    # three sensors on (RGB, thermal, radar): each off; with every sufficiency also each alone
+    assert row["methods"]["ablation"]["fusion_passes"] == 3
+    assert row["methods"]["ablation+sufficiency"]["fusion_passes"] == 6

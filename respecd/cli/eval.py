@@ -10,8 +10,9 @@ threshold and attribution targets). A folder (LLVIP/VOC pairs, COCO json, YOLO t
 is evaluated image by image at ``--scale`` (its val split if it has one). Detections are
 scored down to confidence 0.01 (the usual mAP protocol), not the daemon's operating
 threshold; the detection counts use the operating threshold. For a folder, eval.json also
-has the top-level ``map50``, ``contributions`` (mean scene scores), ``detections`` and
-``detections_without_rgb``.
+has the top-level ``map50``, ``contributions`` (mean scene scores), ``dependence``,
+``sufficiency`` and ``shapley`` (per sensor, means over the images with a detection),
+``detections`` and ``detections_without_rgb``.
 """
 
 from __future__ import annotations
@@ -109,11 +110,15 @@ def _folder_samples(args: argparse.Namespace, config) -> tuple[Any, str]:
 
 
 def folder_summary(result: dict) -> dict:
-    """Top-level eval.json keys for a real folder: mAP@0.5, mean scene contributions, detection counts."""
+    """Top-level eval.json keys for a real folder: mAP@0.5, mean scene contributions, dependence and
+    sufficiency per sensor (the attribution method's, those it has), detection counts."""
+    from respecd.lab.detector.evaluate import REDUNDANCY
+
     contributions = result["contributions"].get("all", {})
     return {
         "map50": result["map"]["all"]["none"]["map50"],
         "contributions": contributions,
+        **{name: result[name].get("all", {}) for name in REDUNDANCY if name in result},
         "detections": result["detections"]["all"]["none"],
         "detections_without_rgb": result["detections"]["all"]["no_rgb"],
     }

@@ -4,10 +4,12 @@ Inputs are real simulated frames (a lit scene with people, so NMS and attributio
 targets), aligned once; the timed part is what the perception worker does per bundle:
 network + NMS (``forward_ms``), or network + NMS + the contributions of the profile's
 method (``attribution_ms``, ``ratio`` = attribution / forward; ``ablation`` by default:
-one more aux-backbone pass per aux sensor and neck + class branch per sensor). Every
-method is timed too (``methods``). Medians over ``--repeats`` runs after a warm-up, as wall
-time and as process CPU time (``*_cpu_ms``); the 1-minute load average says how shared the
-machine was.
+one more aux-backbone pass per aux sensor, fusion + neck + head on the targets' windows per
+sensor off, which with two sensors also gives each one's sufficiency). Every method is timed
+too (``methods``), and the ablation with each sensor's sufficiency however many sensors are on
+(``ablation+sufficiency``: ``perception.attribution_sufficiency: always``; ``fusion_passes``
+counts the subsets each ran). Medians over ``--repeats`` runs after a warm-up, as wall time and
+as process CPU time (``*_cpu_ms``); the 1-minute load average says how shared the machine was.
 """
 
 from __future__ import annotations
@@ -16,11 +18,17 @@ import argparse
 import os
 import statistics
 import time
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from respecd.argtypes import non_negative_int, positive_int, seed
 
+if TYPE_CHECKING:
+    from respecd.perception.attribution import Method, Sufficiency
+
 RESOLUTIONS = ((1280, 720), (960, 540), (640, 360))
+# name in ``methods``, attribution method, its sufficiency (the profile's default method first)
+VARIANTS: tuple[tuple[str, Method, Sufficiency], ...] = (
+    ("ablation", "ablation", "auto"), ("ablation+sufficiency", "ablation", "always"), ("gradient", "gradient", "auto"))
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -64,12 +72,25 @@ def _frames(seed: int, size: tuple[int, int]):
     return {k: Frame(k, state.t, 0, v) for k, v in data.items()}  # type: ignore[arg-type]
 
 
+def _passes(detector: Any, aligned: Any) -> dict[str, int]:
+    """How many fusion + neck + head passes an ablation runs per input (nothing on is a constant), none for gradient."""
+    if detector.attributor.method != "ablation":
+        return {}
+    import torch
+
+    from respecd.perception.ablation import needed_subsets, sensors_on
+
+    x, presence = torch.from_numpy(aligned.tensor)[None], torch.from_numpy(aligned.presence)[None]
+    on = sensors_on(detector.attributor.modalities, x, presence)
+    return {"fusion_passes": sum(1 for s in needed_subsets(on, detector.attributor.always_alone) if s)}
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     import torch
 
     from respecd.lab.detector.simdata import sim_calibration
     from respecd.perception import checkpoint
-    from respecd.perception.attribution import METHODS, Attributor
+    from respecd.perception.attribution import Attributor
     from respecd.perception.config import PerceptionConfig
     from respecd.perception.detector import FusionDetector
 
@@ -84,13 +105,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         aligned = detector.prepare(frames)
         forward_ms, forward_cpu = _median_ms(lambda a=aligned: detector.run(a, False), args.repeats)
         methods = {}
-        for method in METHODS:  # the profile's method last: the detector is left as configured
-            detector.attributor = Attributor(detector.model, method)
+        for name, method, sufficiency in VARIANTS:
+            detector.attributor = Attributor(detector.model, method, sufficiency)
             ms, cpu = _median_ms(lambda a=aligned: detector.run(a, True), args.repeats)
-            methods[method] = {"ms": round(ms, 1), "cpu_ms": round(cpu, 1), "ratio": round(ms / forward_ms, 2),
-                               "cpu_ratio": round(cpu / forward_cpu, 2)}
-        detector.attributor = Attributor(detector.model, config.attribution_method)
-        detections, _ = detector.run(aligned, False)
+            methods[name] = {"ms": round(ms, 1), "cpu_ms": round(cpu, 1), "ratio": round(ms / forward_ms, 2),
+                             "cpu_ratio": round(cpu / forward_cpu, 2), **_passes(detector, aligned)}
+        detector.attributor = Attributor(detector.model, config.attribution_method, config.attribution_sufficiency)
+        detections = detector.run(aligned, False).detections
         chosen = methods[config.attribution_method]
         rows.append({
             "rgb": f"{w}x{h}",

@@ -14,7 +14,10 @@ Per instant:
   (``ablation``, and ``map`` with mAP@0.5:0.95 too);
 * at the daemon's operating point (its score threshold and ``attribution_targets``), the
   contributions of the configured method (``contributions``: mean scene score over frames
-  with a detection) and the deletion test (``faithfulness``): for each attributed box its
+  with a detection); with ``ablation`` also per sensor the share of the attributed boxes'
+  confidence lost with it off (``dependence``), kept with only it on (``sufficiency``) and its
+  exact Shapley value over the sensor subsets (``shapley``, same share; while at most three
+  sensors are on), means over the same frames; and the deletion test (``faithfulness``): for each attributed box its
   confidence with a sensor off is the best detection overlapping it (IoU >= 0.5) in that
   sensor-off pass, 0 if none; the box counts as faithful when switching off its top-ranked
   modality costs more confidence than switching off its second-ranked one.
@@ -33,7 +36,8 @@ import torch
 
 from respecd.lab.detector.data import Sample
 from respecd.lab.detector.metrics import ImageResult, average_precision, false_box_kinds, iou_matrix, mean_ap
-from respecd.perception.attribution import Attributor
+from respecd.perception.ablation import Ablation, shapley
+from respecd.perception.attribution import Attribution, Attributor
 from respecd.perception.boxes import pad_to_stride, postprocess
 from respecd.perception.config import PerceptionConfig
 from respecd.perception.detector import FusionDetector
@@ -75,12 +79,13 @@ class Evaluation:
     def __init__(self, detector: FusionDetector, attribution_threshold: float = OPERATING_THRESHOLD) -> None:
         self.detector, self.attribution_threshold = detector, attribution_threshold
         self.aux = detector.model.spec.aux_modalities
-        self.attributor = Attributor(detector.model, detector.config.attribution_method)
+        self.attributor = Attributor(detector.model, detector.config.attribution_method, "always")  # every number
         self.by_resolution: dict[str, dict[str, list[ImageResult]]] = defaultdict(lambda: defaultdict(list))
         self.levels: dict[str, np.ndarray] = defaultdict(lambda: np.zeros(len(STRIDES), dtype=np.int64))
         self.tallest: dict[str, float] = defaultdict(float)
         self.ablation: dict[str, dict[str, list[ImageResult]]] = defaultdict(lambda: defaultdict(list))
         self.contributions: dict[str, list[dict[str, float]]] = defaultdict(list)
+        self.redundancy: dict[str, dict[str, list[dict[str, float]]]] = defaultdict(lambda: defaultdict(list))
         self.faithful: dict[str, list[bool]] = defaultdict(list)
         self.attributed_frames: dict[str, int] = defaultdict(int)
         self.attribution_size: str | None = None
@@ -139,6 +144,8 @@ class Evaluation:
             if result.scene is not None:
                 self.contributions[cond].append(result.scene)
                 self.attributed_frames[cond] += 1
+            for name, values in redundancy_numbers(result).items():
+                self.redundancy[name][cond].append(values)
 
     def report(self) -> dict:
         ablation = {c: {n: mean_ap(images) for n, images in by.items()} for c, by in self.ablation.items()}
@@ -160,6 +167,7 @@ class Evaluation:
             "ablation": {c: {n: v["map50"] for n, v in by.items()} for c, by in ablation.items()},
             "map": ablation,
             "contributions": {c: _mean_dict(rows) for c, rows in self.contributions.items()},
+            **{name: {c: _mean_dict(rows) for c, rows in by.items()} for name, by in self.redundancy.items()},
             "faithfulness": {c: float(np.mean(v)) for c, v in self.faithful.items() if v},
             "frames": {c: len(by["none"]) for c, by in self.ablation.items()},
             "detections": {c: {n: detection_count(images) for n, images in by.items()}
@@ -169,6 +177,27 @@ class Evaluation:
             "attribution": {"method": cfg.attribution_method, "rgb": self.attribution_size,
                             "score_threshold": self.attribution_threshold, "targets": cfg.attribution_targets},
         }
+
+
+REDUNDANCY = ("dependence", "sufficiency", "shapley")  # eval.json's per-sensor numbers beside the contributions
+
+
+def redundancy_numbers(result: Attribution) -> dict[str, dict[str, float]]:
+    """The frame's dependence, sufficiency and Shapley share per sensor (those it has: ablation with a target)."""
+    out = {name: values for name, values in (("dependence", result.dependence), ("sufficiency", result.sufficiency))
+           if values is not None}
+    shares = shapley_share(result.ablation) if result.ablation is not None else None
+    if shares is not None:
+        out["shapley"] = shares
+    return out
+
+
+def shapley_share(ablation: Ablation) -> dict[str, float] | None:
+    """Per sensor, its Shapley values summed over the targets, as a share of their confidence."""
+    values, total = shapley(ablation), float(ablation.base.sum())
+    if values is None or total <= 0:
+        return None
+    return {m: float(v) / total for m, v in zip(ablation.modalities, values.sum(0).tolist(), strict=True)}
 
 
 HEIGHT_BINS = (0.0, 0.1, 0.2, 0.4, 0.7)  # person height as a share of the frame height

@@ -7,7 +7,7 @@ import json
 import math
 from pathlib import Path
 
-from respecd.lab.detector.evaluate import condition_order
+from respecd.lab.detector.evaluate import REDUNDANCY, condition_order
 
 
 def _fmt(v: float | None) -> str:
@@ -67,7 +67,23 @@ def markdown(report: dict, title: str) -> str:
                      + " | ".join(_fmt(row.get(k)) if row else "n/a" for k in keys)
                      + f" | {report['attributed_detections'].get(cond, 0)} | "
                      + f"{_fmt(report['faithfulness'].get(cond))} |")
-    return "\n".join(lines) + "\n"
+    return "\n".join(lines + _redundancy_table(report, conds)) + "\n"
+
+
+def _redundancy_table(report: dict, conds: list[str]) -> list[str]:
+    """Per sensor: share of the attributed boxes' confidence lost with it off, kept with only it on, Shapley."""
+    names = [n for n in REDUNDANCY if report.get(n)]
+    keys = [k for k in _contribution_keys(report) if k not in ("r", "g", "b")]
+    if not names:
+        return []
+    lines = ["", "Per sensor, share of the attributed boxes' confidence " + ", ".join(
+        {"dependence": "lost with it off (dependence)", "sufficiency": "kept with only it on (sufficiency)",
+         "shapley": "credited by the Shapley value"}[n] for n in names) + ": " + " / ".join(names), "",
+             "| condition | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
+    for cond in conds:
+        cells = [" / ".join(_fmt(report[n].get(cond, {}).get(k)) for n in names) for k in keys]
+        lines.append(f"| {cond} | " + " | ".join(cells) + " |")
+    return lines
 
 
 def _contribution_keys(report: dict) -> list[str]:
@@ -110,7 +126,8 @@ def write(report: dict, out_dir: Path, title: str, summary: dict | None = None) 
     paths["markdown"].write_text(markdown(report, title), encoding="utf-8")
     bar_chart(report, paths["png"], title)
     body = {**(summary or {}), **{k: v for k, v in report.items() if k not in (summary or {})}}
-    if summary and "contributions" in summary:
-        body["contributions_by_condition"] = report["contributions"]
+    for key in ("contributions", *REDUNDANCY):  # the summary's scene means; per condition beside them
+        if summary and key in summary:
+            body[f"{key}_by_condition"] = report[key]
     paths["json"].write_text(json.dumps(body, indent=2, default=float) + "\n", encoding="utf-8")
     return {k: str(v) for k, v in paths.items()}
