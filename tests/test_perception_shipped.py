@@ -55,6 +55,9 @@ def test_detects_by_day_with_every_non_rgb_sensor_off(detector: FusionDetector) 
     percept = detector.infer(frames, attribute=True)
     assert len(boxes) and _found(percept, boxes) == len(boxes)
     assert percept.contributions["thermal"] == 0.0 and percept.contributions["radar"] == 0.0
+    # RGB alone: all of it is lost with RGB off, and RGB alone keeps all of it (the one sensor on)
+    assert percept.dependence["rgb"] == pytest.approx(1.0, abs=0.02) and percept.sufficiency["rgb"] == 1.0
+    assert percept.dependence["thermal"] == percept.sufficiency["thermal"] == 0.0
 
 
 def test_detects_at_night_and_thermal_carries_it(detector: FusionDetector) -> None:
@@ -62,6 +65,8 @@ def test_detects_at_night_and_thermal_carries_it(detector: FusionDetector) -> No
     percept = detector.infer(frames, attribute=True)
     assert len(boxes) and _found(percept, boxes) == len(boxes)
     assert percept.contributions["thermal"] > percept.contributions["rgb"]
+    assert percept.dependence["thermal"] > 10 * percept.dependence["rgb"]  # in the dark it leans on thermal
+    assert percept.sufficiency is None  # three sensors on: each alone is a pass more, left out by default
 
 
 @pytest.mark.slow

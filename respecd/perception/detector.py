@@ -17,7 +17,7 @@ import structlog
 import torch
 
 from respecd.messages import Detection, Frame, Percept, conf_agg
-from respecd.perception import checkpoint, fold
+from respecd.perception import checkpoint, fold, split
 from respecd.perception.align import AlignedInput, Aligner
 from respecd.perception.attribution import Attribution, Attributor, SceneScores
 from respecd.perception.boxes import postprocess
@@ -53,6 +53,7 @@ class FusionDetector:
         self.model = fold.for_inference(model, self.device)  # the daemon never trains its detector
         self.channels = model.spec.channels
         self.aligner = Aligner(config, calibration)
+        self.split = split.as_split(self.model)  # the net's stages (split.py): every forward runs through them
         self.attributor = Attributor(self.model, config.attribution_method, config.attribution_sufficiency)
         self.scores = self.scene_scores()
 
@@ -102,7 +103,7 @@ class FusionDetector:
         cfg = self.config
         if not attribute_now:
             with torch.inference_mode():
-                boxes, scores = self.model.decode(self.model(x, presence), tuple(x.shape[2:]))
+                boxes, scores = split.forward(self.split, x, presence)
                 dets = postprocess(boxes, scores, tuple(x.shape[2:]), cfg.score_threshold, cfg.iou_threshold,
                                    cfg.max_detections)[0]
             return Inference(self._detections(dets, None, aligned.size))

@@ -15,6 +15,10 @@ here, an exported graph elsewhere) provides that split as a ``SplitNet``:
   them with IoU >= ``MATCH_IOU`` (a runtime may return more, e.g. all; never fewer);
 * ``spec``: the ``ModelSpec`` (aux modalities, classes).
 
+A forward pass is ``detect(encode_rgb(x[:, :3]), encode_aux(x[:, 3:], presence), hw)``
+(``forward``): the detector runs every frame through it, so a runtime that provides the split
+serves detection and attribution alike.
+
 Features are opaque to the caller: whatever the runtime hands between its own stages (the
 P3-P5 tensors of each backbone, a dict of Darknet taps, numpy arrays). The caller caches what
 does not depend on the frame: the RGB features of a black frame and the aux features with every
@@ -100,6 +104,11 @@ class WholeNetSplit:
     def detect(self, rgb: Any, aux: Any, input_hw: tuple[int, int], near: torch.Tensor | None = None) -> Scored:
         planes, presence = aux
         return self.model.decode(self.model(torch.cat([rgb, planes], 1), presence), input_hw)
+
+
+def forward(split: SplitNet, x: torch.Tensor, presence: torch.Tensor) -> Scored:
+    """Every sensor as given, (1, 3 + A, H, W) and (1, A): all anchors' boxes and class probabilities."""
+    return split.detect(split.encode_rgb(x[:, :3]), split.encode_aux(x[:, 3:], presence), (x.shape[2], x.shape[3]))
 
 
 def as_split(model: Any) -> SplitNet:

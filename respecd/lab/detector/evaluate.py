@@ -17,7 +17,9 @@ Per instant:
   with a detection); with ``ablation`` also per sensor the share of the attributed boxes'
   confidence lost with it off (``dependence``), kept with only it on (``sufficiency``) and its
   exact Shapley value over the sensor subsets (``shapley``, same share; while at most three
-  sensors are on), means over the same frames; and the deletion test (``faithfulness``): for each attributed box its
+  sensors are on), and the share the whole sensor-off pass below measures them to lose
+  (``lost_when_off``: what ``dependence`` predicts), means over the same frames; and the
+  deletion test (``faithfulness``): for each attributed box its
   confidence with a sensor off is the best detection overlapping it (IoU >= 0.5) in that
   sensor-off pass, 0 if none; the box counts as faithful when switching off its top-ranked
   modality costs more confidence than switching off its second-ranked one.
@@ -36,7 +38,7 @@ import torch
 
 from respecd.lab.detector.data import Sample
 from respecd.lab.detector.metrics import ImageResult, average_precision, false_box_kinds, iou_matrix, mean_ap
-from respecd.perception.ablation import Ablation, shapley
+from respecd.perception.ablation import Ablation, kept_share, shapley
 from respecd.perception.attribution import Attribution, Attributor
 from respecd.perception.boxes import pad_to_stride, postprocess
 from respecd.perception.config import PerceptionConfig
@@ -144,7 +146,7 @@ class Evaluation:
             if result.scene is not None:
                 self.contributions[cond].append(result.scene)
                 self.attributed_frames[cond] += 1
-            for name, values in redundancy_numbers(result).items():
+            for name, values in redundancy_numbers(result, confidences[:, None] - after).items():
                 self.redundancy[name][cond].append(values)
 
     def report(self) -> dict:
@@ -179,16 +181,23 @@ class Evaluation:
         }
 
 
-REDUNDANCY = ("dependence", "sufficiency", "shapley")  # eval.json's per-sensor numbers beside the contributions
+# eval.json's per-sensor numbers beside the contributions
+REDUNDANCY = ("dependence", "sufficiency", "shapley", "lost_when_off")
 
 
-def redundancy_numbers(result: Attribution) -> dict[str, dict[str, float]]:
-    """The frame's dependence, sufficiency and Shapley share per sensor (those it has: ablation with a target)."""
+def redundancy_numbers(result: Attribution, measured_drops: np.ndarray) -> dict[str, dict[str, float]]:
+    """The frame's dependence, sufficiency and Shapley share per sensor (those it has: ablation with a target),
+    and what a whole sensor-off pass measured the attributed boxes to lose (``measured_drops``, (K, M))."""
     out = {name: values for name, values in (("dependence", result.dependence), ("sufficiency", result.sufficiency))
            if values is not None}
-    shares = shapley_share(result.ablation) if result.ablation is not None else None
+    if result.ablation is None:
+        return out
+    shares = shapley_share(result.ablation)
     if shares is not None:
         out["shapley"] = shares
+    lost = kept_share(torch.from_numpy(measured_drops).float(), result.ablation.base)
+    if lost is not None:
+        out["lost_when_off"] = dict(zip(result.modalities, lost.tolist(), strict=True))
     return out
 
 

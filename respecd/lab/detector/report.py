@@ -70,15 +70,19 @@ def markdown(report: dict, title: str) -> str:
     return "\n".join(lines + _redundancy_table(report, conds)) + "\n"
 
 
+REDUNDANCY_WORDS = {"dependence": "lost with it off (dependence)", "sufficiency": "kept with only it on (sufficiency)",
+                    "shapley": "credited by the Shapley value",
+                    "lost_when_off": "lost in a whole sensor-off pass (lost_when_off: what dependence predicts)"}
+
+
 def _redundancy_table(report: dict, conds: list[str]) -> list[str]:
     """Per sensor: share of the attributed boxes' confidence lost with it off, kept with only it on, Shapley."""
     names = [n for n in REDUNDANCY if report.get(n)]
     keys = [k for k in _contribution_keys(report) if k not in ("r", "g", "b")]
     if not names:
         return []
-    lines = ["", "Per sensor, share of the attributed boxes' confidence " + ", ".join(
-        {"dependence": "lost with it off (dependence)", "sufficiency": "kept with only it on (sufficiency)",
-         "shapley": "credited by the Shapley value"}[n] for n in names) + ": " + " / ".join(names), "",
+    lines = ["", "Per sensor, share of the attributed boxes' confidence "
+             + ", ".join(REDUNDANCY_WORDS[n] for n in names) + ": " + " / ".join(names), "",
              "| condition | " + " | ".join(keys) + " |", "|---|" + "---|" * len(keys)]
     for cond in conds:
         cells = [" / ".join(_fmt(report[n].get(cond, {}).get(k)) for n in names) for k in keys]
