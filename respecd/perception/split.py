@@ -10,14 +10,16 @@ here, an exported graph elsewhere) provides that split as a ``SplitNet``:
   ``spec.aux_modalities`` order -> aux features;
 * ``detect(rgb, aux, input_hw, near=None)``: fusion + neck + head + decoding of one pair of
   features -> boxes (1, N, 4) x1y1x2y2 in input pixels and class probabilities (1, N, nc), as
-  torch tensors. Without ``near``: every anchor, in the head's order (what NMS reads). With
-  ``near`` (K, 4) target boxes: at least every anchor that could hold a box overlapping one of
-  them with IoU >= ``MATCH_IOU`` (a runtime may return more, e.g. all; never fewer);
+  torch tensors, as the net's ``decode`` gives them (its score calibration applied). Without
+  ``near``: every anchor, in the head's order (what NMS reads). With ``near`` (K, 4) target
+  boxes: at least every anchor that could hold a box overlapping one of them with IoU >=
+  ``MATCH_IOU`` (a runtime may return more, e.g. all; never fewer);
 * ``spec``: the ``ModelSpec`` (aux modalities, classes).
 
 A forward pass is ``detect(encode_rgb(x[:, :3]), encode_aux(x[:, 3:], presence), hw)``
-(``forward``): the detector runs every frame through it, so a runtime that provides the split
-serves detection and attribution alike.
+(``forward``): ``FusionDetector`` runs every frame through ``self.split`` and hands the same net
+to ``Attributor``, which takes any ``SplitNet`` (``as_split`` passes one through), so a runtime
+that provides the split serves detection and the default attribution alike.
 
 Features are opaque to the caller: whatever the runtime hands between its own stages (the
 P3-P5 tensors of each backbone, a dict of Darknet taps, numpy arrays). The caller caches what
