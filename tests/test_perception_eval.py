@@ -113,6 +113,7 @@ def test_eval_command_on_the_simulator_writes_every_key(tmp_path: Path) -> None:
     assert set(report["ablation"]["radar-only"]) == {"none", "no_rgb", "no_thermal", "no_radar", "rgb_only"}
     assert report["frames"]["radar-only"] == 2 and report["frames"]["all"] == 14  # 7 scenarios x 2 instants
     assert report["attribution"] == {"method": "ablation", "rgb": "640x360", "score_threshold": 0.25, "targets": 5}
+    assert all(k in report for k in ("dependence", "sufficiency", "shapley", "lost_when_off"))  # {} if none attributed
     for cond, row in report["contributions"].items():  # whatever the untrained net detects
         assert set(row) == {"rgb", "thermal", "radar"} and sum(row.values()) == pytest.approx(1.0)
         assert 0 <= report["faithfulness"][cond] <= 1

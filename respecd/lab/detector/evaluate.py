@@ -169,7 +169,8 @@ class Evaluation:
             "ablation": {c: {n: v["map50"] for n, v in by.items()} for c, by in ablation.items()},
             "map": ablation,
             "contributions": {c: _mean_dict(rows) for c, rows in self.contributions.items()},
-            **{name: {c: _mean_dict(rows) for c, rows in by.items()} for name, by in self.redundancy.items()},
+            **{name: {c: _mean_dict(rows) for c, rows in self.redundancy.get(name, {}).items()}
+               for name in (REDUNDANCY if cfg.attribution_method == "ablation" else ())},  # {} when nothing attributed
             "faithfulness": {c: float(np.mean(v)) for c, v in self.faithful.items() if v},
             "frames": {c: len(by["none"]) for c, by in self.ablation.items()},
             "detections": {c: {n: detection_count(images) for n, images in by.items()}
