@@ -174,7 +174,7 @@ def test_a_long_recording_stays_under_max_bytes(tmp_path: Path) -> None:
 def test_daemon_on_a_refusing_disk_runs_on_and_says_so(tmp_path: Path) -> None:
     profile = yaml.safe_load((REPO / "configs" / "sim-rover.yaml").read_text())
     profile["perception"] = {"enabled": False}
-    profile["recording"] = {"min_free_mib": 0}
+    profile["recording"] = {**profile["recording"], "min_free_mib": 0}
     config = tmp_path / "p.yaml"
     config.write_text(yaml.safe_dump(profile))
     record = tmp_path / "rec" / "x.mcap"

@@ -10,6 +10,7 @@ import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 import structlog
@@ -40,7 +41,7 @@ def session_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     profile["perception"] = {"enabled": False}  # no trained weights in the test environment
     profile["simulation"]["scenario_duration_s"] = 1.5  # several scenes within the session
     profile["controller"] = {"decision_period_s": 0.5, "window_s": 0.5}
-    profile["recording"] = {"chunk_size_kib": 256}  # a dozen chunks in this small log, whatever the load
+    profile["recording"] = {**profile["recording"], "chunk_size_kib": 256}  # a dozen chunks, whatever the load
     config = root / "profile.yaml"
     config.write_text(yaml.safe_dump(profile))
     log = root / "session.mcap"
@@ -68,7 +69,7 @@ def test_recorded_session_opens_with_the_mcap_reader(session_log: Path) -> None:
         profile = {m.name: m.metadata for m in reader.iter_metadata()}["respecd.profile"]
     assert json.loads(profile["json"])["name"] == "sim-rover-test"
     assert schemas["/sensors/rgb"] == {"foxglove.CompressedImage"}
-    assert schemas["/sensors/thermal"] == {"foxglove.RawImage"}
+    assert schemas["/sensors/thermal"] == {"foxglove.CompressedImage"}  # lossless 16-bit PNG
     assert schemas["/sensors/radar"] == {"foxglove.PointCloud"}
     assert schemas["/sensors/thermal/colormap"] == {"foxglove.CompressedImage"}
     assert schemas["/tf"] == {"foxglove.FrameTransforms"}
@@ -134,7 +135,12 @@ def test_a_replay_decodes_only_the_rgb_frames_the_detector_runs_on(
         pytest.skip("no built-in detector checkpoint (run `make weights`)")
     decoded: list[int] = []
     real = legacy.decode_compressed
-    monkeypatch.setattr(legacy, "decode_compressed", lambda raw, fmt: decoded.append(len(raw)) or real(raw, fmt))
+    def counted(raw: bytes, fmt: str) -> Any:
+        if fmt == "jpeg":  # the RGB frames (thermal and depth are PNG)
+            decoded.append(len(raw))
+        return real(raw, fmt)
+
+    monkeypatch.setattr(legacy, "decode_compressed", counted)
     profile = yaml.safe_load((session_log.parent / "profile.yaml").read_text())
     profile["perception"] = {"enabled": True}
     config = tmp_path / "with-detector.yaml"

@@ -5,8 +5,9 @@ loop: JPEG/PNG coding is the costly part. The messages are ``foxglove-sdk``'s ow
 so they validate against Foxglove's schemas by construction. What a Foxglove message has no
 field for (the exact session time, sequence number, driver meta such as ground truth) goes
 into a ``respecd.FrameMeta`` JSON message on ``/sensors/<name>/meta``, written just before
-the frame with the same log time. Encoding is exact for 16-bit and float images (RawImage
-or PNG) and radar points (float32 PointCloud); RGB is JPEG by default.
+the frame with the same log time. Camera frames are lossless by default (PNG
+CompressedImage, 16-bit kept) unless the profile asks for JPEG (RGB) or RawImage; radar
+points are exact (float32 PointCloud).
 """
 
 from __future__ import annotations
@@ -36,16 +37,33 @@ _RAW_ENCODINGS = {  # Foxglove RawImage encodings; data is little-endian
 }
 
 
+# PNG at zlib level 1 with one fixed filter and strategy, chosen on simulated frames (docs/RECORDING.md
+# "Image encodings"): higher levels gain 2-3 % for 1.7-3.4x the time, libpng's adaptive filter choice
+# costs more than it gains; 8-bit colour predicts best from the average of left and up, 16-bit from
+# the left neighbour; run-length matches only (flat areas, invalid depth), as noise leaves nothing longer.
+PNG_PARAMS = {
+    1: [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_AVG,
+        cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE],
+    2: [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB,
+        cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE],
+}
+
+
 @dataclass(frozen=True)
 class ImageFormats:
     """The recording choices that matter to the encoder (a slice of RecordingConfig + profile)."""
 
-    rgb: str = "jpeg"
+    rgb: str = "png"  # "png" | "jpeg" | "raw"
     jpeg_quality: int = 80
-    wide: str = "raw"  # 16-bit thermal/depth: "png" or "raw"
+    thermal: str = "png"  # "png" | "raw"
+    depth: str = "png"  # "png" | "raw"
     thermal_colormap: str = "inferno"  # or "none": no display image beside the raw thermal one
     thermal_range_k: tuple[float, float] = (273.0, 313.0)  # kelvin spread over the colormap
     thermal_counts_per_k: float = 100.0  # raw uint16 counts per kelvin (centikelvin)
+
+    def of(self, modality: str) -> str:
+        """The encoding of ``modality``'s frames."""
+        return {"rgb": self.rgb, "thermal": self.thermal, "depth": self.depth}.get(modality, "raw")
 
 
 class Message(NamedTuple):
@@ -133,18 +151,11 @@ def _points(data: np.ndarray, sensor: str, ts: fox.Timestamp) -> bytes:
 
 def _image(frame: Frame, sensor: str, ts: fox.Timestamp, formats: ImageFormats) -> tuple[str, bytes]:
     data = frame.data
-    if data.dtype == np.uint8 and data.ndim == 3 and formats.rgb in ("jpeg", "png"):
-        jpeg = formats.rgb == "jpeg"
-        ext, params = (".jpg", [cv2.IMWRITE_JPEG_QUALITY, formats.jpeg_quality]) if jpeg else (".png", [])
-        ok, buf = cv2.imencode(ext, data, params)
-        if ok:
-            msg = fox.CompressedImage(timestamp=ts, frame_id=sensor, data=buf.tobytes(), format=formats.rgb)
-            return "foxglove.CompressedImage", msg.encode()
-    if data.dtype == np.uint16 and formats.wide == "png":
-        ok, buf = cv2.imencode(".png", data, [cv2.IMWRITE_PNG_COMPRESSION, 1])  # level 1: fast, still lossless
-        if ok:
-            return "foxglove.CompressedImage", fox.CompressedImage(timestamp=ts, frame_id=sensor, data=buf.tobytes(),
-                                                                   format="png").encode()
+    compressed = _compress(data, formats.of(frame.modality), formats.jpeg_quality)
+    if compressed is not None:
+        fmt, buf = compressed
+        return "foxglove.CompressedImage", fox.CompressedImage(timestamp=ts, frame_id=sensor, data=buf,
+                                                               format=fmt).encode()
     channels = data.shape[2] if data.ndim == 3 else 1
     encoding = _RAW_ENCODINGS.get((data.dtype.name, channels))
     if encoding is None:
@@ -156,6 +167,21 @@ def _image(frame: Frame, sensor: str, ts: fox.Timestamp, formats: ImageFormats) 
     raw = fox.RawImage(timestamp=ts, frame_id=sensor, width=int(width), height=int(height), encoding=encoding,
                        step=int(width * data.itemsize * channels), data=pixels.tobytes())
     return "foxglove.RawImage", raw.encode()
+
+
+def _compress(data: np.ndarray, fmt: str, jpeg_quality: int) -> tuple[str, bytes] | None:
+    """(format, bytes) of ``data`` as a PNG or JPEG; None where it stays raw: asked so, or pixels
+    the format cannot hold exactly (float, JPEG of anything but 8-bit colour or grey)."""
+    channels = data.shape[2] if data.ndim == 3 else 1
+    if fmt == "jpeg" and data.dtype == np.uint8 and channels in (1, 3):
+        ok, buf = cv2.imencode(".jpg", data, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+    elif fmt == "png" and data.dtype in (np.uint8, np.uint16) and channels in (1, 3, 4):
+        ok, buf = cv2.imencode(".png", data, PNG_PARAMS[data.itemsize])
+    else:
+        return None
+    if not ok:
+        raise ValueError(f"{fmt} encoding of a {data.shape} {data.dtype} image failed")
+    return fmt, buf.tobytes()
 
 
 _COLORMAPS = {"inferno": cv2.COLORMAP_INFERNO}
@@ -223,17 +249,17 @@ def decode_frame(schema: LoggedSchema, payload: bytes, fallback_modality: Modali
                  meta: dict[str, Any] | None = None, lazy: bool = False) -> Frame:
     """The ``Frame`` a logged sensor message stands for; ``meta`` is its FrameMeta (new
     format). First-format logs (JSON, inline ``respecd`` object) decode as they always did.
-    ``lazy``: a JPEG becomes a ``LazyFrame``, decoded when its pixels are first read."""
+    ``lazy``: a JPEG or PNG becomes a ``LazyFrame``, decoded when its pixels are first read."""
     if schema.message_encoding == "json" and meta is None:
         return legacy.decode_frame(schema.name, payload, fallback_modality, log_ns)
     meta = meta or {}
     modality = meta.get("modality", fallback_modality)
     msg = decode_message(schema, payload)
     t = float(meta.get("t", log_ns / 1e9))
-    if lazy and schema.name == "foxglove.CompressedImage" and (shape := lazy_frames.jpeg_shape(msg.data)) is not None:
-        jpeg, fmt = msg.data, msg.format
+    if lazy and schema.name == "foxglove.CompressedImage" and (shape := lazy_frames.encoded_shape(msg.data)):
+        encoded, fmt = msg.data, msg.format
         return lazy_frames.LazyFrame(modality, t, int(meta.get("seq", 0)), meta=dict(meta.get("meta") or {}),
-                                     decode=lambda: legacy.decode_compressed(jpeg, fmt), shape=shape)
+                                     decode=lambda: legacy.decode_compressed(encoded, fmt), shape=shape)
     if schema.name == "foxglove.PointCloud":
         data = legacy.points_array(msg.data, msg.point_stride, {f.name: f.offset for f in msg.fields})
     elif schema.name == "respecd.Imu":

@@ -37,8 +37,9 @@ class RecordingConfig(StrictModel):
         True, description="fsync at most every flush_s: a power cut (not just a crash) keeps what was fsynced."
     )
     compression: Literal["zstd", "lz4", "none"] = Field(
-        "lz4", description="Chunk compression: lz4 (default) costs the writer about a third of zstd's CPU for "
-        "files about 25 % larger (zstd at the mcap library's level 3).",
+        "lz4", description="MCAP chunk compression. Images are compressed per message (png, jpeg), so the chunk's "
+        "compression matters for raw images and respecd's JSON channels: lz4 (default) is the cheaper, zstd (the "
+        "mcap library's level 3) the smaller.",
     )
     rotate_mib: float = Field(
         512.0, gt=0, le=1 << 20, description="Start a new file once the current one reaches this size (MiB)."
@@ -50,19 +51,22 @@ class RecordingConfig(StrictModel):
         list(ALL_CHANNELS),
         description="What to record: sensor frames, raw radar UART bytes, percepts, decisions, applied configs, sync.",
     )
-    jpeg_quality: int = Field(
-        80, ge=10, le=100, description="JPEG quality for RGB frames (CompressedImage). 80: on the simulated rover "
-        "about 0.8 points of a core less than 90, for files a quarter smaller (docs/PERFORMANCE.md).",
-    )
-    rgb_format: Literal["jpeg", "png"] = Field(
-        "jpeg", description="RGB encoding: jpeg (small, lossy) or png (lossless, ~9x larger, ~11x slower to encode)."
-    )
-    depth_format: Literal["raw", "png"] = Field(
-        "raw",
+    rgb_format: Literal["png", "jpeg", "raw"] = Field(
+        "png",
         description=(
-            "16-bit thermal/depth encoding: raw (RawImage mono16/16UC1, chunk-compressed; ~3x cheaper to encode) "
-            "or png (CompressedImage, lossless, ~15% smaller files)."
+            "RGB frames: png (CompressedImage, lossless), jpeg (CompressedImage at jpeg_quality: lossy, ~15x "
+            "smaller and ~12x cheaper to encode) or raw (RawImage bgr8, compressed only by the chunk)."
         ),
+    )
+    jpeg_quality: int = Field(
+        80, ge=10, le=100, description="JPEG quality of RGB frames when rgb_format is jpeg, and of the thermal "
+        "display image.",
+    )
+    thermal_format: Literal["png", "raw"] = Field(
+        "png", description="Thermal frames: png (CompressedImage, lossless, 16-bit kept) or raw (RawImage mono16).",
+    )
+    depth_format: Literal["png", "raw"] = Field(
+        "png", description="Depth frames: png (CompressedImage, lossless 16-bit millimetres) or raw (RawImage 16UC1).",
     )
     thermal_colormap: Literal["inferno", "none"] = Field(
         "inferno",

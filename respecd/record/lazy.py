@@ -3,7 +3,7 @@
 A replay serves every logged RGB frame, but the detector runs on a few of them (a 30 Hz
 camera and a detector at ~10 Hz: two of three frames are superseded before anything looks
 at their pixels). Decoding a 640x360 JPEG costs about as much CPU as everything else the
-replay does with the frame, so a ``LazyFrame`` carries the JPEG bytes and its size, and
+replay does with the frame (a PNG more), so a ``LazyFrame`` carries the encoded bytes and its size, and
 decodes when ``data`` is first read — in whichever thread needs the pixels (usually the
 detector's worker), once, under a lock. Everything else (rate decimation, pairing, queues)
 only needs ``t``, ``seq``, ``meta`` and the size.
@@ -115,3 +115,25 @@ def jpeg_shape(data: bytes | memoryview) -> tuple[int, ...] | None:
             return (height, width) if components == 1 else (height, width, 3)
         i += 2 + int.from_bytes(buf[i + 2:i + 4], "big")
     return None
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_CHANNELS = {0: 1, 2: 3, 6: 4}  # IHDR colour type -> channels cv2.imdecode(IMREAD_UNCHANGED) gives
+
+
+def png_shape(data: bytes | memoryview) -> tuple[int, ...] | None:
+    """(height, width[, channels]) of a PNG from its IHDR chunk, as ``cv2.imdecode(IMREAD_UNCHANGED)``
+    gives it; None for what this does not size (palette, grey with alpha, not a PNG)."""
+    head = bytes(data[:26])
+    if len(head) < 26 or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        return None
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    channels = _PNG_CHANNELS.get(head[25])
+    if channels is None or width == 0 or height == 0:
+        return None
+    return (height, width) if channels == 1 else (height, width, channels)
+
+
+def encoded_shape(data: bytes | memoryview) -> tuple[int, ...] | None:
+    """The decoded shape of a JPEG or PNG, read from its header (None: decode to know)."""
+    return jpeg_shape(data) if bytes(data[:2]) == b"\xff\xd8" else png_shape(data)

@@ -116,7 +116,7 @@ class SessionLog:
         """The sensor's logged frames in order; radar frames get their raw UART bytes back.
 
         With ``demux`` (shared by every sensor of a replay) the file is read once in all,
-        instead of once per sensor. ``lazy``: JPEG frames are decoded when first read
+        instead of once per sensor. ``lazy``: JPEG and PNG frames are decoded when first read
         (``respecd.record.lazy``).
         """
         topics = [sensor_topic(sensor), raw_topic(sensor), meta_topic(sensor)]

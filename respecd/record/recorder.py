@@ -1,7 +1,7 @@
 """Record a live session to MCAP (and serve it live) without ever blocking the event loop.
 
 The daemon calls the ``on_*`` taps from the loop; each tap only appends the (immutable)
-message to a bounded deque. A worker thread encodes each message once (JPEG/PNG, Foxglove
+message to a bounded deque. A worker thread encodes each message once (PNG/JPEG, Foxglove
 protobuf, JSON) and hands it to its sinks: the MCAP segment writer and/or the Foxglove
 live view. When the worker falls behind, the oldest message is dropped and counted
 (``dropped``, shown in the status line): a recorder must never slow the robot down.
@@ -66,8 +66,10 @@ class Sink(Protocol):
 def _formats(config: RecordingConfig, profile: Mapping[str, Any]) -> codec.ImageFormats:
     perception = profile.get("perception") or {}
     return codec.ImageFormats(
-        config.rgb_format, config.jpeg_quality, config.depth_format, config.thermal_colormap,
-        tuple(perception.get("thermal_range_k", (273.0, 313.0))), float(perception.get("thermal_counts_per_k", 100.0)),
+        rgb=config.rgb_format, jpeg_quality=config.jpeg_quality, thermal=config.thermal_format,
+        depth=config.depth_format, thermal_colormap=config.thermal_colormap,
+        thermal_range_k=tuple(perception.get("thermal_range_k", (273.0, 313.0))),
+        thermal_counts_per_k=float(perception.get("thermal_counts_per_k", 100.0)),
     )
 
 
@@ -83,6 +85,9 @@ class Recorder:
     """Taps for the daemon; encoding and sink I/O in one worker thread.
 
     ``to_file`` writes the MCAP log; ``live`` (the Foxglove server) is another sink.
+    ``drain_s``: how long ``close`` encodes queued frames before dropping the rest (the
+    daemon's SIGTERM budget); None encodes them all, for a session on a simulated or
+    lockstep clock, which can queue faster than real time and has no robot to let go.
     """
 
     def __init__(
@@ -92,6 +97,7 @@ class Recorder:
         clock: Clock,
         live: Sink | None = None,
         to_file: bool = True,
+        drain_s: float | None = DRAIN_S,
     ) -> None:
         """``profile``: the Profile, or its JSON form (what the log stores)."""
         self.config = config
@@ -114,6 +120,7 @@ class Recorder:
         self._wake_at = max(1, config.queue_size // 2) if self._batch_s > 0 else 1
         self._cond = threading.Condition()
         self._closing = False
+        self._drain_s = drain_s
         self._drain_until = float("inf")
         self._rgb_sensor = _rgb_sensor(self.profile)
         self._thread: threading.Thread | None = None
@@ -200,10 +207,11 @@ class Recorder:
             return
         with self._cond:
             self._closing = True
-            self._drain_until = time.monotonic() + DRAIN_S
+            if self._drain_s is not None:
+                self._drain_until = time.monotonic() + self._drain_s
             self._cond.notify()
         thread, self._thread = self._thread, None
-        await asyncio.to_thread(thread.join, CLOSE_TIMEOUT_S)
+        await asyncio.to_thread(thread.join, CLOSE_TIMEOUT_S if self._drain_s is not None else None)
         if thread.is_alive():
             log.error("record.close_timeout", pending=len(self._queue))
         lost = self._segments.lost if self._segments else 0

@@ -15,6 +15,7 @@ BENCHES: dict[str, str] = {
     "scenarios": "respecd.lab.bench.scenarios",
     "sim": "respecd.lab.bench.sim",
     "replay": "respecd.lab.bench.replay",
+    "recording": "respecd.lab.bench.recording",
     "live": "respecd.lab.bench.live",
     "soak": "respecd.lab.bench.soak",
     "peers": "respecd.lab.bench.peers",
