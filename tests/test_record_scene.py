@@ -49,13 +49,24 @@ def _to_base(transforms, frame: str, point: np.ndarray) -> np.ndarray:
 def test_a_radar_return_on_boresight_lands_in_front_of_the_camera() -> None:
     message = Scene(PROFILE).transforms(1_000_000_000)
     tf = _decode("FrameTransforms", message.payload).transforms
-    assert {t.child_frame_id for t in tf} == {"cam", "radar", "ir"}  # the IMU has no pose to show
+    assert {t.child_frame_id for t in tf} == {"cam", "radar", "ir", "imu"}
     ahead = _to_base(tf, "radar", np.array([0.0, 5.0, 0.0]))  # TI frame: y is the boresight
     np.testing.assert_allclose(ahead, [5.0, 0.0, -0.12], atol=1e-9)  # base_link: 5 m ahead, 12 cm lower
     camera_axis = _to_base(tf, "cam", np.array([0.0, 0.0, 1.0]))
     np.testing.assert_allclose(camera_axis, [1.0, 0.0, 0.0], atol=1e-9)  # the optical axis looks forward
     turned = _to_base(tf, "ir", np.array([0.0, 0.0, 1.0]))  # yaw 90: the thermal camera looks right
     np.testing.assert_allclose(turned, [0.0, -1.05, 0.0], atol=1e-9)  # ... from 5 cm right of the camera
+
+
+def test_the_imu_at_rest_reads_gravity_upward_in_base_link() -> None:
+    """The IMU sits in the camera's frame (the D435i's, y down): its resting reading, the
+    reaction to gravity, must point up (+z) in base_link as REP 145 expects."""
+    tf = _decode("FrameTransforms", Scene(PROFILE).transforms(0).payload).transforms
+    by_child = {t.child_frame_id: t for t in tf}
+    assert by_child["imu"].parent_frame_id == "cam"
+    rotation = _matrix(by_child["imu"].rotation)
+    up = _to_base(tf, "cam", rotation @ np.array([0.0, -9.81, 0.0])) - _to_base(tf, "cam", np.zeros(3))
+    np.testing.assert_allclose(up, [0.0, 0.0, 9.81], atol=1e-9)
 
 
 def test_camera_calibration_is_scaled_to_the_frame_size() -> None:

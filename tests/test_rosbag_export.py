@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from mcap.reader import make_reader
 from rosbags.highlevel import AnyReader
 
 from respecd.cli import main
@@ -23,7 +24,7 @@ from respecd.record.ros_types import typestore
 INTRINSICS = {"fx": 457.0, "fy": 457.0, "cx": 320.0, "cy": 180.0, "width": 640, "height": 360}
 PROFILE = {"name": "bag-rig", "sensors": [
     {"name": "cam", "modality": "rgb", "calibration": {"intrinsics": INTRINSICS}},
-    {"name": "radar", "modality": "radar"}]}
+    {"name": "radar", "modality": "radar"}, {"name": "ir", "modality": "thermal"}, {"name": "imu", "modality": "imu"}]}
 LEGACY = Path(__file__).parent / "data" / "legacy-v1.mcap"
 
 
@@ -60,32 +61,57 @@ async def test_exported_bag_has_the_logs_topics_counts_and_payloads(tmp_path: Pa
     with AnyReader([bag], default_typestore=store) as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
         types = {c.topic: c.msgtype for c in reader.connections}
-        assert counts == {topic: c.count for topic, c in log.channels.items()}
+        expected = {topic: c.count for topic, c in log.channels.items() if topic != "/tf"}
+        assert log.channels["/tf"].count >= 1 and counts == {**expected, "/tf_static": 1}
         assert types["/sensors/cam"] == "sensor_msgs/msg/CompressedImage"
-        assert types["/sensors/ir"] == "sensor_msgs/msg/Image"
+        assert types["/sensors/ir"] == "sensor_msgs/msg/CompressedImage"  # lossless 16-bit PNG
         assert types["/sensors/ir/colormap"] == "sensor_msgs/msg/CompressedImage"
         assert types["/sensors/radar"] == "sensor_msgs/msg/PointCloud2"
         assert types["/sensors/imu"] == "sensor_msgs/msg/Imu"
         assert types["/sensors/cam/calibration"] == "sensor_msgs/msg/CameraInfo"
-        assert types["/tf"] == "tf2_msgs/msg/TFMessage"
+        assert types["/tf_static"] == "tf2_msgs/msg/TFMessage"
         assert types["/respecd/detections"] == "vision_msgs/msg/Detection2DArray"
         assert types["/respecd/percept"] == "std_msgs/msg/String"
         seen: dict[str, list] = {}
         for connection, _, raw in reader.messages():
             seen.setdefault(connection.topic, []).append(reader.deserialize(raw, connection.msgtype))
     ir = seen["/sensors/ir"][5]
-    assert (ir.encoding, ir.width, ir.height) == ("mono16", 160, 120)
-    np.testing.assert_array_equal(ir.data.view("<u2").reshape(120, 160), sent[5]["ir"].data)
+    assert ir.format == "png" and ir.header.frame_id == "ir"
+    np.testing.assert_array_equal(cv2.imdecode(ir.data, cv2.IMREAD_UNCHANGED), sent[5]["ir"].data)
     cloud = seen["/sensors/radar"][7]
     assert [f.name for f in cloud.fields] == ["x", "y", "z", "v", "snr"] and cloud.point_step == 20
     np.testing.assert_array_equal(cloud.data.view("<f4").reshape(-1, 5), sent[7]["radar"].data)
     image = cv2.imdecode(seen["/sensors/cam"][0].data, cv2.IMREAD_COLOR)
     assert image.shape == (360, 640, 3)
-    detection = seen["/respecd/detections"][1].detections[0]
+    detections = seen["/respecd/detections"][1]
+    assert detections.header.frame_id == "cam"  # the camera whose pixels the boxes are in
+    detection = detections.detections[0]
     assert detection.results[0].hypothesis.class_id == "person" and detection.results[0].hypothesis.score == 0.75
     assert (detection.bbox.center.position.x, detection.bbox.size_x, detection.bbox.size_y) == (60.0, 100.0, 200.0)
     assert seen["/sensors/imu"][0].linear_acceleration.z == 2.0
     assert list(seen["/sensors/cam/calibration"][0].k)[:3] == [457.0, 0.0, 320.0]
+    frames = {t.child_frame_id: t.header.frame_id for t in seen["/tf_static"][0].transforms}
+    assert frames == {"cam": "base_link", "radar": "cam", "ir": "cam", "imu": "cam"}  # every sensor, the IMU too
+
+
+async def test_the_bag_follows_ros_2_conventions_and_is_compressed(tmp_path: Path) -> None:
+    await _record(tmp_path / "s.mcap")
+    bag = tmp_path / "bag"
+    assert main(["log", "export", str(tmp_path / "s.mcap"), "--to", "rosbag2", str(bag)]) == 0
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert meta["ros_distro"] == "humble"  # whose message definitions the bag holds
+    topics = {t["topic_metadata"]["name"]: t["topic_metadata"] for t in meta["topics_with_message_count"]}
+    latched = yaml.safe_load(topics["/tf_static"]["offered_qos_profiles"])
+    assert [(q["durability"], q["reliability"], q["depth"]) for q in latched] == [(1, 1, 1)]  # transient local
+    assert "/tf" not in topics
+    storage = next(bag.glob("*.mcap"))
+    with open(storage, "rb") as f:
+        reader = make_reader(f)
+        summary = reader.get_summary()
+        assert summary is not None and {c.compression for c in summary.chunk_indexes} == {"zstd"}
+        embedded = {m.name: m.metadata for m in reader.iter_metadata()}["rosbag2"]
+    assert yaml.safe_load(embedded["serialized_metadata"])["ros_distro"] == "humble"  # the .mcap alone says so
+    assert sum(p.stat().st_size for p in bag.iterdir()) <= (tmp_path / "s.mcap").stat().st_size
 
 
 def test_export_refuses_an_existing_dir_and_first_format_logs(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -1,17 +1,22 @@
 """``respecd log export LOG --to rosbag2 OUT``: a recorded session as a ROS 2 bag.
 
-rosbag2 layout (``metadata.yaml`` + one MCAP storage file, cdr) written by ``rosbags``,
-which follows what rosbag2 itself writes (metadata version 8). Every channel of the log
-becomes one topic with the same name and the same message count, in standard messages:
+rosbag2 layout (``metadata.yaml`` + one MCAP storage file, cdr, zstd-compressed chunks) written
+by ``rosbags``, which follows what rosbag2 itself writes (metadata version 8); ``ros_distro``
+names the distribution whose message definitions are written (Humble). Every channel of the
+log becomes one topic with the same name and the same message count, in standard messages,
+except the transforms: the profile's sensor frames are fixed, so they go once on
+``/tf_static`` with the transient-local QoS ROS 2 latches them with (REP 105), not
+periodically on ``/tf`` as the log repeats them for late-joining viewers:
 
 * ``foxglove.CompressedImage`` -> ``sensor_msgs/msg/CompressedImage`` (the JPEG/PNG bytes, not re-encoded)
 * ``foxglove.RawImage`` -> ``sensor_msgs/msg/Image`` (exact pixels)
 * ``foxglove.PointCloud`` -> ``sensor_msgs/msg/PointCloud2`` (float32 x, y, z, v, snr)
 * ``respecd.Imu`` -> ``sensor_msgs/msg/Imu`` (orientation_covariance[0] = -1: no orientation)
 * ``foxglove.CameraCalibration`` -> ``sensor_msgs/msg/CameraInfo``
-* ``foxglove.FrameTransforms`` -> ``tf2_msgs/msg/TFMessage``
+* ``foxglove.FrameTransforms`` -> ``tf2_msgs/msg/TFMessage`` (the first, once, on ``/tf_static``)
 * ``foxglove.ImageAnnotations`` (detections) -> ``vision_msgs/msg/Detection2DArray``: box
-  from the drawn corners, class and score from the "person 0.87" text
+  from the drawn corners, class and score from the "person 0.87" text, ``frame_id`` the
+  camera the boxes are in
 * respecd's own JSON channels (percepts, decisions, configs, sync, frame meta, raw radar
   bytes) -> ``std_msgs/msg/String`` holding the same JSON
 """
@@ -28,9 +33,12 @@ from respecd.errors import InputError
 from respecd.record import codec
 from respecd.record.reader import SessionLog
 from respecd.record.ros_types import typestore
+from respecd.record.topics import TOPIC_DETECTIONS
 
 ROSBAG2_VERSION = 8  # metadata.yaml version rosbag2 writes since Iron (rosbags writes 8 or 9)
+ROS_DISTRO = "humble"  # the message definitions written are ros_types.typestore()'s: Humble's
 FLOAT32 = 7  # sensor_msgs/PointField.FLOAT32
+TF_STATIC = "/tf_static"
 
 MSGTYPES = {
     "foxglove.CompressedImage": "sensor_msgs/msg/CompressedImage",
@@ -46,7 +54,7 @@ STRING = "std_msgs/msg/String"
 
 def export_rosbag2(session: SessionLog, out: Path) -> dict[str, int]:
     """Write ``session`` to the bag directory ``out`` (must not exist); messages per topic."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode
 
     if out.exists():
         raise InputError(f"{out}: already exists (rosbag2 output must be a new directory)")
@@ -54,26 +62,87 @@ def export_rosbag2(session: SessionLog, out: Path) -> dict[str, int]:
         raise InputError(f"{session.path}: written by respecd 0.1.0 (format 1, JSON/base64); export reads format 2 "
                          "logs. Replay it with --record to get one: respecd --replay LOG --speed max --record NEW.mcap")
     store = typestore()
-    converter = _Converter(store)
+    converter = _Converter(store, session)
     counts: dict[str, int] = {}
-    with Writer(out, version=ROSBAG2_VERSION, storage_plugin=StoragePlugin.MCAP) as writer:  # type: ignore[arg-type]
+    writer = _writer_class()(out, version=ROSBAG2_VERSION, storage_plugin=_storage_plugin())
+    writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)  # zstd chunks, as ros2 bag -s mcap can
+    with writer:
         connections: dict[str, Any] = {}
         for topic, schema, log_ns, payload in session.messages():
+            if schema.name == "foxglove.FrameTransforms":
+                if TF_STATIC in connections:
+                    continue  # fixed frames: once
+                topic = TF_STATIC
             msgtype = MSGTYPES.get(schema.name, STRING)
             connection = connections.get(topic)
             if connection is None:
-                connection = connections[topic] = writer.add_connection(topic, msgtype, typestore=store)
+                qos = [_latched()] if topic == TF_STATIC else []
+                connection = connections[topic] = writer.add_connection(topic, msgtype, typestore=store,
+                                                                        offered_qos_profiles=qos)
             message = converter.convert(schema, payload)
             writer.write(connection, log_ns, store.serialize_cdr(message, msgtype))
             counts[topic] = counts.get(topic, 0) + 1
+    _name_distro(out / "metadata.yaml")
     return counts
+
+
+def _storage_plugin() -> Any:
+    from rosbags.rosbag2 import StoragePlugin
+
+    return StoragePlugin.MCAP
+
+
+def _latched() -> Any:
+    """The QoS rosbag2 records ``/tf_static`` with: reliable, transient local, keep last 1."""
+    from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
+
+    never = QosTime(sec=0x7FFFFFFF, nsec=0xFFFFFFFF)  # rmw's "infinite" duration as rosbag2 writes it
+    return Qos(history=QosHistory.KEEP_LAST, depth=1, reliability=QosReliability.RELIABLE,
+               durability=QosDurability.TRANSIENT_LOCAL, deadline=never, lifespan=never,
+               liveliness=QosLiveliness.AUTOMATIC, liveliness_lease_duration=never,
+               avoid_ros_namespace_conventions=False)
+
+
+def _with_distro(metadata_yaml: str) -> str:
+    """rosbag2 metadata (YAML text) naming ROS_DISTRO where rosbags writes its own name."""
+    import yaml
+
+    data = yaml.safe_load(metadata_yaml)
+    info = data.get("rosbag2_bagfile_information", data)
+    info["ros_distro"] = ROS_DISTRO
+    return yaml.safe_dump(data, sort_keys=False)
+
+
+def _name_distro(path: Path) -> None:
+    path.write_text(_with_distro(path.read_text()))
+
+
+def _writer_class() -> Any:
+    """rosbags' rosbag2 writer whose MCAP storage names the distribution in its embedded
+    metadata too (``ros2 bag info`` on a lone .mcap reads that copy)."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.rosbag2.storage_mcap import McapWriter
+
+    class _McapStorage(McapWriter):
+        def close(self, version: int, metadata: str) -> None:
+            super().close(version, _with_distro(metadata).strip())
+
+    class _Writer(Writer):
+        STORAGE_PLUGINS = {**Writer.STORAGE_PLUGINS, StoragePlugin.MCAP: _McapStorage}
+
+    return _Writer
 
 
 class _Converter:
     """Foxglove / respecd messages -> rosbags message objects."""
 
-    def __init__(self, store: Any) -> None:
+    def __init__(self, store: Any, session: SessionLog) -> None:
         self.t = store.types
+        # the camera whose pixels detection boxes are in: what its images' frame_id is
+        drawn = session.channels.get(TOPIC_DETECTIONS)
+        image_topic = drawn.metadata.get("image_topic", "") if drawn is not None else ""
+        rgb = next((name for name, modality in session.sensors.items() if modality == "rgb"), "")
+        self.image_frame = image_topic.removeprefix("/sensors/") or rgb
         self._by_schema: dict[str, Callable[[Any], Any]] = {
             "foxglove.CompressedImage": self._compressed,
             "foxglove.RawImage": self._raw,
@@ -148,7 +217,7 @@ class _Converter:
 
     def _detections(self, m: Any) -> Any:
         t = self.t
-        header = self._header(m.timestamp, "")
+        header = self._header(m.timestamp, self.image_frame)
         detections = []
         for box, text in zip(m.points, m.texts, strict=False):
             xs, ys = [p.x for p in box.points], [p.y for p in box.points]

@@ -63,7 +63,7 @@ class Scene:
             for s in sensors
             if (s.get("calibration") or {}).get("intrinsics") and s.get("modality") in ("rgb", "thermal", "depth")
         }
-        self.poses = {str(s["name"]): self._pose(s) for s in sensors if s.get("modality") != "imu"}
+        self.poses = {str(s["name"]): self._pose(s) for s in sensors}
 
     def _pose(self, sensor: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         """(R, t) of the sensor's data frame in its parent frame."""

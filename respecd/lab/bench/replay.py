@@ -3,9 +3,9 @@
 * Recording overhead: the recorder taps real simulated frames (pre-rendered, cycled) on a
   real-time 30 Hz schedule; overhead = CPU time of the writer thread (encode, compress,
   write) plus the taps on the loop, over wall time, in % of one core. Measured for RGB
-  alone (640x360 JPEG at 30 Hz) and for the whole simulated rover at its profile rates, with
-  the daemon's recording defaults (lz4 chunks, JPEG quality 80), and once with zstd chunks
-  (smaller files, more CPU).
+  alone (640x360 at 30 Hz) and for the whole simulated rover at its profile rates, as the
+  sim-rover profile records (its ``recording:`` section: RGB JPEG, thermal and depth
+  lossless PNG, lz4 chunks), and once with zstd chunks.
 * Replay throughput: a simulated session is recorded in lockstep (fast, no detector), then
   replayed with ``--speed max`` through the full pipeline with the detector, RGB held at
   the chosen resolution (policy static, one RGB setting) (``replay_speed_x``); the same
@@ -118,17 +118,17 @@ async def _recording_overhead(
     from respecd.clock import MonotonicClock
     from respecd.config import load_profile
     from respecd.messages import Frame
-    from respecd.record.config import RecordingConfig
     from respecd.record.recorder import Recorder
 
     rates = {"rgb": 30.0} if rgb_only else {"rgb": 30.0, "thermal": 9.0, "radar": 10.0, "depth": 15.0, "imu": 30.0}
     frames = _frames(size, args.seed)
     clock = MonotonicClock()
-    config = RecordingConfig(path=str(path))  # the daemon's defaults (lz4 chunks, JPEG quality 80)
+    # the sim-rover's profile: its recording section, calibrations and extrinsics, as in the daemon
+    profile = load_profile("builtin:sim-rover")
+    config = profile.recording.model_copy(update={"enabled": True, "path": str(path)})
     if compression is not None:
         config = config.model_copy(update={"compression": compression})
-    # the sim-rover's profile: its calibrations and extrinsics are recorded too, as in the daemon
-    recorder = Recorder(config, load_profile("builtin:sim-rover"), clock)
+    recorder = Recorder(config, profile, clock)
     recorder.start()
     tap_cpu = 0.0
     counts = dict.fromkeys(rates, 0)
@@ -152,6 +152,7 @@ async def _recording_overhead(
     return {
         "streams_hz": rates,
         "compression": config.compression,
+        "encodings": {"rgb": config.rgb_format, "thermal": config.thermal_format, "depth": config.depth_format},
         "jpeg_quality": config.jpeg_quality,
         "wall_s": round(wall, 2),
         "frames": sum(counts.values()),
