@@ -2,8 +2,8 @@
 # A Jetson user points TORCH_SPEC at NVIDIA's wheel, e.g.
 #   make install TORCH_SPEC=/path/to/torch-2.5.0a0+nv24.08-cp310-cp310-linux_aarch64.whl
 # PyPI's Linux torch pulls ~2.5 GB of CUDA libraries; TORCH_INDEX adds PyTorch's CPU index (for torch
-# alone, not its dependencies), whose 2.13.0+cpu outranks PyPI's 2.13.0. Where it is unreachable pip
-# retries it for a few seconds and goes on; TORCH_INDEX= skips it.
+# alone, not its dependencies), whose 2.13.0+cpu outranks PyPI's 2.13.0. Where it is unreachable the
+# install says so in one line and takes torch from the usual indexes; TORCH_INDEX= skips it.
 PYTHON ?= python3
 VENV ?= .venv
 TORCH_SPEC ?= torch==2.13.0
@@ -20,10 +20,18 @@ install: $(VENV)/.installed
 $(VENV)/.installed: pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet --no-deps "$(TORCH_SPEC)" $(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX))
+	@index="$(TORCH_INDEX)"; \
+	if [ -n "$$index" ] && ! $(BIN)/python -c "$$PROBE" "$$index" 2>/dev/null; then \
+	  echo "make: $$index unreachable: torch from the usual indexes"; index=; fi; \
+	echo $(BIN)/pip install --quiet --no-deps "$(TORCH_SPEC)" $${index:+--extra-index-url $$index}; \
+	$(BIN)/pip install --quiet --no-deps "$(TORCH_SPEC)" $${index:+--extra-index-url $$index}
 	$(BIN)/pip install --quiet "$(TORCH_SPEC)"  # its dependencies, from the usual indexes
-	$(BIN)/pip install --quiet -e ".[test,lab]"
+	# setuptools' note on every editable install whose packages are mapped (respecd.drivers <- drivers/)
+	PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip install --quiet -e ".[test,lab]"
 	touch $@
+
+# one quick look at an index (pip would retry an unreachable one five times, a warning each)
+export PROBE := import sys, urllib.request; urllib.request.urlopen(sys.argv[1].rstrip("/") + "/torch/", timeout=10)
 
 run: install
 	$(BIN)/respecd $(ARGS)
