@@ -4,6 +4,7 @@ detector outcomes; save it where ``--policy exploit`` finds it and plot the lear
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -116,7 +117,7 @@ def main(args: argparse.Namespace) -> int:
         history = list(read_table(out)[0].get("episode_reward", []))
         print(f"resuming from {out} ({table.updates} updates, {len(history)} episodes, epsilon {table.epsilon:.3f})")
     settings = TrainSettings(args.episodes, args.seeds, args.min_s, args.max_s, args.seed, args.max_minutes)
-    bar = tqdm(total=args.episodes, desc="train-policy", unit="episode")
+    bar = tqdm(total=args.episodes, desc="train-policy", unit="episode", disable=not sys.stderr.isatty())
 
     def progress(episode: int, result: Any) -> None:
         cache = evaluator.cache

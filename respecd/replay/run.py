@@ -212,8 +212,9 @@ class _Replay:
 
     async def _drive(self, session: Any, clock: Any, lockstep: bool, stop: asyncio.Event) -> None:
         end = self.t0 + self.duration
-        bar = _progress_bar()(total=round(self.duration, 1), unit="s", desc="replay", disable=self.duration < 20,
-                              mininterval=1.0, file=sys.stderr, leave=False)
+        bar = _progress_bar()(total=round(self.duration, 1), unit="s", desc="replay", mininterval=1.0,
+                              disable=not progress_shown(self.duration, sys.stderr),
+                              file=sys.stderr, leave=False, bar_format=BAR_FORMAT)
         task = asyncio.create_task(session.run(duration=self.duration, stop=stop), name="replay-session")
 
         def progress(t: float) -> None:
@@ -242,7 +243,29 @@ def _progress_bar() -> Any:
     class Bar(tqdm):
         monitor_interval = 0  # no monitor thread: it would outlive the replay by 10 s
 
+        @property
+        def format_dict(self) -> dict[str, Any]:
+            values = super().format_dict
+            values["speed"] = speed_label(values["n"], values["elapsed"])
+            return values
+
     return Bar
+
+
+# log seconds over wall seconds is the replay's speed: "3.2x real time", not tqdm's "3.2s/s"
+BAR_FORMAT = "{desc}: {percentage:3.0f}%|{bar}| {n:.0f}/{total:.0f} s of log [{elapsed}<{remaining}, {speed}]"
+
+
+def progress_shown(duration_s: float, stream: Any) -> bool:
+    """A bar for a person at a terminal, on a replay long enough to watch; never in a pipe,
+    a file or the journal, where its redraws would be lines of noise."""
+    isatty = getattr(stream, "isatty", None)
+    return duration_s >= 20 and isatty is not None and bool(isatty())
+
+
+def speed_label(log_s: float, wall_s: float) -> str:
+    """How fast a replay runs, as a person reads it."""
+    return f"{log_s / wall_s:.1f}× real time" if wall_s > 0 and log_s > 0 else "– × real time"
 
 
 class _NoBar:

@@ -7,6 +7,7 @@ Simulated samples are rendered on demand (``simdata.py``); LLVIP-layout folders
 from __future__ import annotations
 
 import functools
+import sys
 import xml.etree.ElementTree as ET
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -56,8 +57,9 @@ def to_sample(aligned_tensor: np.ndarray, presence: np.ndarray, size: tuple[int,
 
 
 def progress(iterable, enabled: bool, **kwargs):
-    """tqdm when asked; the bare iterable otherwise (a disabled tqdm still starts its monitor thread)."""
-    if not enabled:
+    """tqdm when asked and stderr is a terminal (not a pipe, a file or the journal); the bare
+    iterable otherwise (a disabled tqdm still starts its monitor thread)."""
+    if not enabled or not sys.stderr.isatty():
         return iterable
     from tqdm import tqdm
 
