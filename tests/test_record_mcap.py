@@ -19,6 +19,7 @@ from mcap.reader import make_reader
 from respecd.clock import ManualClock
 from respecd.errors import InputError
 from respecd.messages import Bundle, Decision, Detection, Frame, Health, Percept, SensorConfig, SyncStats
+from respecd.record.channels import MODELS
 from respecd.record.config import RecordingConfig
 from respecd.record.reader import open_log
 from respecd.record.recorder import Recorder
@@ -127,6 +128,7 @@ async def test_log_opens_with_mcap_reader_and_decodes_with_foxglove_schemas(tmp_
                 assert schema.encoding == "jsonschema" and channel.message_encoding == "json"
                 body = json.loads(message.data)
                 _validate(body, json.loads(schema.data))
+                MODELS[schema.name].model_validate_json(message.data)  # the typed model, strictly
             if channel.topic.endswith("/meta"):
                 metas[channel.topic.removesuffix("/meta"), message.log_time] = body
             if channel.topic == "/respecd/percept":

@@ -3,8 +3,9 @@
 Foxglove's well-known types (images, point clouds, image annotations, camera calibrations,
 frame transforms) come from Foxglove's own library, ``foxglove-sdk``: protobuf schemas
 (a ``FileDescriptorSet``) with binary payloads, so a log opens in Foxglove and validates
-against the official schemas; nothing is copied by hand. respecd's own channels stay JSON
-with the small JSON Schemas below.
+against the official schemas; nothing is copied by hand. respecd's own channels are JSON,
+their JSON Schemas generated from the typed message models in ``respecd.record.channels``
+(pydantic), flattened to the plain subset Foxglove reads (no ``$ref``, nullable as a type list).
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ from functools import cache
 from typing import Any
 
 import foxglove.messages as fox
+
+from respecd.record.channels import MODELS
 
 
 @dataclass(frozen=True)
@@ -38,136 +41,34 @@ def foxglove_schema(name: str) -> SchemaDef:
 @cache
 def own_schema(name: str) -> SchemaDef:
     """One of respecd's own JSON channels (``respecd.Percept`` ...)."""
-    return SchemaDef(name, "jsonschema", json.dumps(SCHEMAS[name], separators=(",", ":")).encode(), "json")
+    return SchemaDef(name, "jsonschema", json.dumps(json_schema(name), separators=(",", ":")).encode(), "json")
+
+
+def json_schema(name: str) -> dict[str, Any]:
+    """The JSON Schema of channel ``name``, from its message model."""
+    model = MODELS[name]
+    schema = model.model_json_schema()
+    return {**_plain(schema, schema.get("$defs", {})), "title": name}
+
+
+def _plain(node: Any, defs: dict[str, Any]) -> Any:
+    """``node`` with every ``$ref`` inlined, ``anyOf [X, null]`` written as X with a type list
+    and pydantic's generated titles dropped: the JSON Schema subset Foxglove's panels read."""
+    if isinstance(node, list):
+        return [_plain(item, defs) for item in node]
+    if not isinstance(node, dict):
+        return node
+    if "$ref" in node:
+        return _plain({**defs[node["$ref"].rsplit("/", 1)[-1]], **{k: v for k, v in node.items() if k != "$ref"}},
+                      defs)
+    options = node.get("anyOf")
+    if options and len(options) == 2 and {"type": "null"} in options:
+        other = _plain(next(o for o in options if o != {"type": "null"}), defs)
+        kinds = other.get("type", [])
+        node = {**other, **{k: v for k, v in node.items() if k not in ("anyOf", "default")},
+                "type": [*(kinds if isinstance(kinds, list) else [kinds]), "null"]}
+    return {k: _plain(v, defs) for k, v in node.items() if k not in ("$defs", "default", "title")}
 
 
 def schema_def(name: str) -> SchemaDef:
     return foxglove_schema(name) if name.startswith("foxglove.") else own_schema(name)
-
-
-_TIME = {
-    "type": "object",
-    "title": "time",
-    "properties": {
-        "sec": {"type": "integer", "minimum": 0},
-        "nsec": {"type": "integer", "minimum": 0, "maximum": 999999999},
-    },
-    "description": "Timestamp of the sample",
-}
-_FRAME_ID = {"type": "string", "description": "Frame of reference"}
-_BYTES = {"type": "string", "contentEncoding": "base64"}
-_NUMBER = {"type": "number"}
-_VECTOR3 = {"type": "object", "properties": {"x": _NUMBER, "y": _NUMBER, "z": _NUMBER}}
-
-IMU: dict[str, Any] = {
-    "title": "respecd.Imu",
-    "type": "object",
-    "properties": {
-        "timestamp": _TIME,
-        "frame_id": _FRAME_ID,
-        "linear_acceleration": {**_VECTOR3, "description": "m/s^2"},
-        "angular_velocity": {**_VECTOR3, "description": "rad/s"},
-    },
-}
-
-RAW_BYTES: dict[str, Any] = {
-    "title": "respecd.RawBytes",
-    "description": "Bytes exactly as the device sent them (radar UART data port), for the live parser",
-    "type": "object",
-    "properties": {"timestamp": _TIME, "frame_id": _FRAME_ID, "data": _BYTES},
-}
-
-_CONFIG_PROPS = {
-    "modality": {"type": "string"},
-    "enabled": {"type": "boolean"},
-    "rate_hz": _NUMBER,
-    "resolution": {"type": ["array", "null"], "items": {"type": "integer"}},
-    "mode": {"type": ["string", "null"]},
-    "notes": {"type": "array", "items": {"type": "string"}},
-}
-
-SENSOR_CONFIG: dict[str, Any] = {
-    "title": "respecd.SensorConfig",
-    "description": "What a driver really applied",
-    "type": "object",
-    "properties": {"t": _NUMBER, "sensor": {"type": "string"}, **_CONFIG_PROPS},
-}
-
-PERCEPT: dict[str, Any] = {
-    "title": "respecd.Percept",
-    "description": "Detections, ConfAgg and per-modality contribution scores of one bundle",
-    "type": "object",
-    "properties": {
-        "t": _NUMBER,
-        "conf_agg": _NUMBER,
-        "latency_s": _NUMBER,
-        "contributions": {"type": ["object", "null"], "additionalProperties": _NUMBER,
-                          "description": "Per modality, normalized to sum 1: what the controller reads"},
-        "dependence": {"type": ["object", "null"], "additionalProperties": _NUMBER,
-                       "description": "Per modality, 0..1: share of the detections' confidence lost with it off"},
-        "sufficiency": {"type": ["object", "null"], "additionalProperties": _NUMBER,
-                        "description": "Per modality, 0..1: share of the detections' confidence kept with only it on"},
-        "detections": {
-            "type": "array",
-            "items": {
-                "type": "object",
-                "properties": {
-                    "box": {"type": "array", "items": _NUMBER},
-                    "confidence": _NUMBER,
-                    "label": {"type": "string"},
-                },
-            },
-        },
-        "pixels": {"type": "integer", "description": "RGB pixels in the bundle (compute proxy)"},
-    },
-}
-
-DECISION: dict[str, Any] = {
-    "title": "respecd.Decision",
-    "description": "One controller step: state bins, action, reward and its terms, applied configs",
-    "type": "object",
-    "properties": {
-        "t": _NUMBER,
-        "state": {"type": "array", "items": {"type": "integer"}},
-        "action": {"type": "integer"},
-        "reward": _NUMBER,
-        "epsilon": _NUMBER,
-        "q_values": {"type": "array", "items": _NUMBER},
-        "terms": {"type": "object", "additionalProperties": _NUMBER},
-        "configs": {"type": "array", "items": {"type": "object", "properties": _CONFIG_PROPS}},
-    },
-}
-
-SYNC: dict[str, Any] = {
-    "title": "respecd.Sync",
-    "description": "Synchronizer health at one tick and which frames it paired",
-    "type": "object",
-    "properties": {
-        "t": _NUMBER,
-        "seq": {"type": "integer"},
-        "rate_hz": _NUMBER,
-        "jitter_ms": _NUMBER,
-        "stale_ratio": _NUMBER,
-        "health": {"type": "string", "enum": ["good", "fair", "poor"]},
-        "frames": {"type": "object", "description": "modality -> [frame t, frame seq]"},
-    },
-}
-
-FRAME_META: dict[str, Any] = {
-    "title": "respecd.FrameMeta",
-    "description": (
-        "What a Foxglove sensor message cannot carry: the frame's exact session time, sequence number, modality "
-        "and the driver's metadata (the simulator's ground truth 'gt'); written just before the frame, same log time"
-    ),
-    "type": "object",
-    "properties": {
-        "t": _NUMBER,
-        "seq": {"type": "integer"},
-        "modality": {"type": "string"},
-        "meta": {"type": "object"},
-    },
-}
-
-SCHEMAS: dict[str, dict[str, Any]] = {
-    s["title"]: s for s in (IMU, RAW_BYTES, FRAME_META, SENSOR_CONFIG, PERCEPT, DECISION, SYNC)
-}
