@@ -1,8 +1,10 @@
 """structlog set-up: JSON lines for machines (journald, files), a readable terminal for people.
 
 * JSON (stdout not a TTY, or ``--log-format json``): one object per line, as always. Under
-  systemd, when stdout is the journal (``JOURNAL_STREAM`` names it), each line starts with
-  its syslog priority (``<3>`` error ... ``<7>`` debug), so ``journalctl -p warning`` filters.
+  systemd, when stdout is the journal (``JOURNAL_STREAM`` names it), each event goes to the
+  journal's native socket with its fields (``journalctl SENSOR=rgb``, ``respecd.journal``),
+  or, where that socket is absent, as a line starting with its syslog priority (``<3>``
+  error ... ``<7>`` debug), so ``journalctl -p warning`` filters either way.
 * Console: log lines above one refreshed status line (``respecd.terminal``); the per-decision
   and per-apply lines are debug there unless ``-v``.
 * Other libraries' logging and Python warnings go through the same renderer; OpenCV's own
@@ -17,6 +19,9 @@ import sys
 from typing import Any, Literal
 
 import structlog
+
+from respecd import journal
+from respecd.journal import JOURNAL_SOCKET
 
 LogFormat = Literal["json", "console", "auto"]
 
@@ -54,20 +59,25 @@ def drop_chatty(logger: Any, name: str, event: dict[str, Any]) -> dict[str, Any]
 
 
 def configure_logging(fmt: LogFormat = "auto", level: str = "info", verbose: bool = False,
-                      journal: bool | None = None) -> Literal["json", "console"]:
+                      journal: bool | None = None,
+                      journal_socket: str | None = JOURNAL_SOCKET) -> Literal["json", "console"]:
     """Configure structlog and stdlib logging; return the format chosen.
 
     ``auto`` means JSON when stdout is not a TTY (systemd, pipes), console otherwise.
-    ``journal`` (default: detected) prefixes JSON lines with their syslog priority.
+    ``journal`` (default: detected): stdout is the journal, so JSON events go to
+    ``journal_socket`` with their fields when it exists, else as lines prefixed with their
+    syslog priority.
     """
     chosen: Literal["json", "console"]
     chosen = ("console" if sys.stdout.isatty() else "json") if fmt == "auto" else fmt
     numeric = logging.DEBUG if verbose else getattr(logging, level.upper(), logging.INFO)
     renderer: Any
+    native = False
     if chosen == "json":
         renderer = structlog.processors.JSONRenderer()
         if stdout_is_journal() if journal is None else journal:
-            renderer = syslog_prefix(renderer)
+            native = journal_socket is not None and os.path.exists(journal_socket)
+            renderer = JournalRenderer(renderer) if native else syslog_prefix(renderer)
     else:
         renderer = structlog.dev.ConsoleRenderer()
     shared: list[Any] = [
@@ -82,11 +92,41 @@ def configure_logging(fmt: LogFormat = "auto", level: str = "info", verbose: boo
     structlog.configure(
         processors=[*shared, renderer],
         wrapper_class=structlog.make_filtering_bound_logger(numeric),
-        logger_factory=_factory(chosen),
+        logger_factory=_journal_factory(journal_socket) if native and journal_socket else _factory(chosen),
         cache_logger_on_first_use=False,
     )
     _route_stdlib(max(numeric, logging.WARNING) if not verbose else logging.DEBUG)
     return chosen
+
+
+class JournalRenderer:
+    """The JSON line, with the event's fields beside it for the journal logger."""
+
+    def __init__(self, renderer: Any) -> None:
+        self._renderer = renderer
+
+    def __call__(self, logger: Any, name: str, event: dict[str, Any]) -> tuple[tuple[str], dict[str, Any]]:
+        priority = SYSLOG_PRIORITY.get(str(event.get("level", name)), 6)
+        return (self._renderer(logger, name, event),), {"priority": priority, "fields": event}
+
+
+class JournalLogger:
+    """Each event one journal entry (``respecd.journal``); a refused one a ``<N>`` line on stdout."""
+
+    def __init__(self, sender: Any) -> None:
+        self._sender = sender
+        self._stdout = StdoutLogger(sys.stdout)
+
+    def msg(self, message: str, priority: int = 6, fields: dict[str, Any] | None = None) -> None:
+        if not self._sender.send(journal.entry(message, priority, fields or {})):
+            self._stdout.msg(f"<{priority}>{message}")
+
+    log = debug = info = warn = warning = error = critical = exception = fatal = msg
+
+
+def _journal_factory(path: str) -> Any:
+    logger = JournalLogger(journal.JournalSender(path))  # one socket for every logger
+    return lambda *_: logger
 
 
 def _factory(chosen: str) -> Any:

@@ -7,6 +7,8 @@ from __future__ import annotations
 import io
 import json
 import os
+import socket
+import struct
 import subprocess
 import sys
 from pathlib import Path
@@ -16,12 +18,12 @@ import pytest
 from respecd.terminal import CLEAR_LINE, UP_CLEAR, Terminal
 
 SCRIPT = """
-import logging, sys, warnings
+import logging, os, sys, warnings
 import structlog
 from respecd.logs import configure_logging
-configure_logging("json", "info")
+configure_logging("json", "info", journal_socket=os.environ.get("TEST_JOURNAL_SOCKET"))
 log = structlog.get_logger("t")
-log.debug("hidden"); log.info("started"); log.warning("slow"); log.error("broken")
+log.debug("hidden"); log.info("started"); log.bind(sensor="rgb").warning("slow", note="a\\nb"); log.error("broken")
 logging.getLogger("foxglove.websocket").warning("client dropped")
 warnings.warn("old API", DeprecationWarning)
 """
@@ -42,6 +44,48 @@ def test_under_systemd_every_line_starts_with_its_syslog_priority(tmp_path: Path
     events = [json.loads(line[3:]) for line in lines]
     assert [e["event"] for e in events] == ["started", "slow", "broken", "foxglove.websocket", "warning"]
     assert events[3]["message"] == "client dropped" and "old API" in events[4]["message"]
+
+
+@pytest.mark.e2e
+def test_under_systemd_events_are_journal_entries_with_their_fields(tmp_path: Path) -> None:
+    """The journal's native protocol: ``journalctl SENSOR=rgb`` finds the sensor's lines."""
+    path = tmp_path / "journal.socket"
+    with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM) as journald:
+        journald.bind(str(path))
+        lines = _run(SCRIPT, tmp_path / "out", {"JOURNAL_STREAM": "{dev}:{ino}", "TEST_JOURNAL_SOCKET": str(path)})
+        journald.settimeout(5)
+        entries = [_fields(journald.recv(65536)) for _ in range(5)]
+    assert lines == []  # nothing on stdout: every event went to the journal
+    assert [e["PRIORITY"] for e in entries] == ["6", "4", "3", "4", "4"]
+    slow = entries[1]
+    assert slow["SENSOR"] == "rgb" and slow["EVENT"] == "slow" and slow["SYSLOG_IDENTIFIER"] == "respecd"
+    assert slow["NOTE"] == "a\nb"  # a value with a newline, in the length-prefixed form
+    assert json.loads(slow["MESSAGE"])["sensor"] == "rgb"  # the JSON line, as journalctl -o cat shows it
+
+
+@pytest.mark.e2e
+def test_a_journal_socket_that_refuses_gives_the_prefixed_line(tmp_path: Path) -> None:
+    lines = _run(SCRIPT, tmp_path / "out", {"JOURNAL_STREAM": "{dev}:{ino}",
+                                              "TEST_JOURNAL_SOCKET": str(tmp_path)})  # exists, not a socket
+    assert [line[:3] for line in lines] == ["<6>", "<4>", "<3>", "<4>", "<4>"]
+
+
+def _fields(datagram: bytes) -> dict[str, str]:
+    """Parse one native-protocol entry (KEY=value lines; KEY, 64-bit length, binary value)."""
+    fields, i = {}, 0
+    while i < len(datagram):
+        end = datagram.index(b"\n", i)
+        line = datagram[i:end]
+        if b"=" in line:
+            key, _, value = line.partition(b"=")
+            i = end + 1
+        else:
+            key, size = line, struct.unpack("<Q", datagram[end + 1:end + 9])[0]
+            value = datagram[end + 9:end + 9 + size]
+            assert datagram[end + 9 + size:end + 10 + size] == b"\n"
+            i = end + 10 + size
+        fields[key.decode()] = value.decode()
+    return fields
 
 
 @pytest.mark.e2e

@@ -147,7 +147,10 @@ def mb_per_s(path: Path) -> float:
     from mcap.reader import make_reader
 
     with open(path, "rb") as f:
-        stats = make_reader(f).get_summary().statistics  # type: ignore[union-attr]
+        summary = make_reader(f).get_summary()
+    stats = summary.statistics if summary is not None else None
+    if stats is None:
+        return 0.0
     span = (stats.message_end_time - stats.message_start_time) / 1e9
     return round(path.stat().st_size / span / 1e6, 3) if span > 0 else 0.0
 
