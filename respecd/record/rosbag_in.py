@@ -35,6 +35,7 @@ from respecd.errors import InputError
 from respecd.filekind import ROS1_MAGIC
 from respecd.messages import Frame, Modality
 from respecd.record.reader import ChannelInfo, Demux
+from respecd.record.ros_image import image_pixels
 
 MODALITIES: tuple[Modality, ...] = ("rgb", "thermal", "radar", "depth", "imu")
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
@@ -383,26 +384,9 @@ def to_array(msg: Any, msgtype: str, modality: Modality) -> np.ndarray:
     raise ValueError(f"cannot convert {msgtype}")
 
 
-_CHANNELS = {"rgb8": 3, "bgr8": 3, "rgba8": 4, "bgra8": 4, "mono8": 1, "8UC1": 1, "8UC3": 3,
-             "mono16": 1, "16UC1": 1, "32FC1": 1}
-_YUV = {"yuv422": cv2.COLOR_YUV2BGR_UYVY, "uyvy": cv2.COLOR_YUV2BGR_UYVY, "yuv422_yuy2": cv2.COLOR_YUV2BGR_YUY2,
-        "yuyv": cv2.COLOR_YUV2BGR_YUY2}
-
-
 def _image(msg: Any, modality: Modality) -> np.ndarray:
-    enc, h, w, step = msg.encoding, int(msg.height), int(msg.width), int(msg.step)
-    raw = np.asarray(msg.data, dtype=np.uint8)
-    if enc in _YUV:
-        return cv2.cvtColor(raw[: h * step].reshape(h, step)[:, : w * 2].reshape(h, w, 2), _YUV[enc])
-    if enc not in _CHANNELS:
-        raise ValueError(f"unsupported image encoding {enc!r}")
-    channels = _CHANNELS[enc]
-    dtype = np.dtype({"mono16": "u2", "16UC1": "u2", "32FC1": "f4"}.get(enc, "u1"))
-    dtype = dtype.newbyteorder(">" if msg.is_bigendian else "<")
-    rows = raw[: h * step].reshape(h, step)[:, : w * channels * dtype.itemsize]
-    pixels = np.ascontiguousarray(rows).view(dtype).astype(dtype.newbyteorder("="))
-    pixels = pixels.reshape(h, w, channels) if channels > 1 else pixels.reshape(h, w)
-    return _to_modality(pixels, enc, modality)
+    pixels = image_pixels(msg)  # colour as BGR, grey as it is (rosbags-image)
+    return _to_modality(pixels, "bgr8" if pixels.ndim == 3 else "mono", modality)
 
 
 def _compressed(msg: Any, modality: Modality) -> np.ndarray:
@@ -416,10 +400,10 @@ def _compressed(msg: Any, modality: Modality) -> np.ndarray:
 
 
 def _to_modality(pixels: np.ndarray, enc: str, modality: Modality) -> np.ndarray:
-    if enc == "rgb8":
-        pixels = cv2.cvtColor(pixels, cv2.COLOR_RGB2BGR)
-    elif enc in ("rgba8", "bgra8"):
-        pixels = cv2.cvtColor(pixels, cv2.COLOR_RGBA2BGR if enc == "rgba8" else cv2.COLOR_BGRA2BGR)
+    if pixels.ndim == 3 and pixels.shape[2] == 4:  # a decoded PNG with alpha
+        pixels = cv2.cvtColor(pixels, cv2.COLOR_BGRA2BGR)
+    if modality == "rgb" and pixels.ndim == 3 and pixels.dtype == np.uint16:  # 16-bit colour
+        pixels = (pixels >> 8).astype(np.uint8)
     if modality == "rgb" and pixels.ndim == 2:
         if pixels.dtype != np.uint8:
             pixels = cv2.normalize(pixels, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)  # type: ignore[call-overload]
