@@ -27,6 +27,7 @@ FORMATS = {
     "lossless": {"rgb_format": "png", "thermal_format": "png", "depth_format": "png"},
 }
 TAPS = ("frame", "bundle", "percept", "decision", "config")
+ONE_FILE = float(1 << 20)  # MiB: no rotation, each encoding's replay covers the whole session
 IOU_MATCH = 0.5  # a detection moved, not vanished, when its best match overlaps this much
 
 
@@ -100,7 +101,8 @@ def record(profile: Any, encodings: dict[str, dict[str, Any]], seconds: float, s
     async def session() -> None:
         clock = LockstepClock(0.0)
         recorders = [Recorder(profile.recording.model_copy(update={**over, "enabled": True, "path": str(paths[name]),
-                                                                   "queue_size": 65536}), quiet, clock, drain_s=None)
+                                                                   "queue_size": 65536, "rotate_mib": ONE_FILE}),
+                              quiet, clock, drain_s=None)
                      for name, over in encodings.items()]
         for recorder in recorders:
             recorder.start()
