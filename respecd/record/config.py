@@ -54,8 +54,9 @@ class RecordingConfig(StrictModel):
     rgb_format: Literal["png", "jpeg", "raw"] = Field(
         "png",
         description=(
-            "RGB frames: png (CompressedImage, lossless), jpeg (CompressedImage at jpeg_quality: lossy, ~15x "
-            "smaller and ~12x cheaper to encode) or raw (RawImage bgr8, compressed only by the chunk)."
+            "RGB frames: png (CompressedImage, lossless), jpeg (CompressedImage at jpeg_quality: lossy, an order "
+            "of magnitude smaller and cheaper to encode; docs/RECORDING.md \"Image encodings\") or raw (RawImage "
+            "bgr8, compressed only by the chunk)."
         ),
     )
     jpeg_quality: int = Field(
