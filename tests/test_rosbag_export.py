@@ -4,6 +4,7 @@ topic with the log's message counts, in standard ROS 2 messages with the exact p
 from __future__ import annotations
 
 import asyncio
+import shutil
 from pathlib import Path
 
 import cv2
@@ -119,3 +120,18 @@ def test_export_refuses_an_existing_dir_and_first_format_logs(tmp_path: Path, ca
     assert "already exists" in capsys.readouterr().err
     assert main(["log", "export", str(LEGACY), "--to", "rosbag2", str(tmp_path / "bag")]) == 2
     assert "format 1" in capsys.readouterr().err
+
+
+async def test_the_bags_mcap_copied_alone_is_still_a_bag(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    """What ``ros2 bag record -s mcap`` leaves, often copied without metadata.yaml, reads as a bag."""
+    await _record(tmp_path / "s.mcap")
+    assert main(["log", "export", str(tmp_path / "s.mcap"), "--to", "rosbag2", str(tmp_path / "bag")]) == 0
+    alone = tmp_path / "alone" / "ros2.mcap"
+    alone.parent.mkdir()
+    shutil.copy(next((tmp_path / "bag").glob("*.mcap")), alone)
+    capsys.readouterr()
+    assert main(["log", "info", str(alone)]) == 0
+    out = capsys.readouterr().out
+    assert "rosbag2" in out and "/tf_static" in out and "format 1" not in out
+    assert main(["log", "info", str(tmp_path / "s.mcap")]) == 0  # respecd's own log is still one
+    assert "format 2" in capsys.readouterr().out

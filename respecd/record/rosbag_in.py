@@ -48,13 +48,32 @@ _DESERIALIZE = threading.Lock()  # every replay driver reads its topic in a read
 
 
 def is_bag(path: str | Path) -> bool:
-    """A rosbag2 directory (or one of its storage files) or a ROS 1 ``.bag``."""
+    """A rosbag2 directory (or one of its storage files), a ROS 2 ``.mcap`` on its own (what
+    ``ros2 bag record -s mcap`` writes, copied without its metadata.yaml) or a ROS 1 ``.bag``."""
     p = Path(path)
     if p.is_dir():
         return (p / "metadata.yaml").is_file()
     if p.suffix == ".bag":
         return True
-    return p.suffix in (".mcap", ".db3") and (p.parent / "metadata.yaml").is_file()
+    return p.suffix in (".mcap", ".db3") and (p.parent / "metadata.yaml").is_file() or is_ros2_mcap(p)
+
+
+def is_ros2_mcap(path: Path) -> bool:
+    """An MCAP file whose header names the ``ros2`` profile (rosbag2's storage plugin and
+    rosbags write it; respecd's own logs name none)."""
+    try:
+        head = filekind.read_head(path)
+    except OSError:
+        return False
+    # magic, then the Header record: opcode 0x01, u64 length, profile as u32 length + bytes
+    if not head.startswith(filekind.MCAP_MAGIC) or head[8:9] != b"\x01" or len(head) < 25:
+        return False
+    size = struct.unpack_from("<I", head, 17)[0]
+    return head[21 : 21 + size] == b"ros2"
+
+
+def _lone_storage(path: Path) -> bool:
+    return path.suffix == ".mcap" and not (path.parent / "metadata.yaml").is_file()
 
 
 def parse_topics(text: str | None, modalities: Iterable[str] = MODALITIES) -> dict[str, str]:
@@ -144,6 +163,9 @@ class BagLog:
 
 
 def _bag_root(path: Path) -> Path:
+    """What rosbags opens: the bag's folder, or a lone .mcap itself (rosbags reads it raw)."""
+    if _lone_storage(path):
+        return path
     return path.parent if path.suffix in (".mcap", ".db3") else path
 
 
@@ -183,6 +205,8 @@ def _check_layout(p: Path) -> None:
     """What rosbags would trip over with a message of its own (a UnicodeDecodeError for a
     binary header, "'int' object is not subscriptable" for a metadata.yaml of the wrong
     shape), said in our words: the file, the field or byte offset, and what was expected."""
+    if _lone_storage(p):
+        return  # no metadata.yaml to check: rosbags reads the MCAP's own summary
     if p.is_dir() or p.suffix in (".mcap", ".db3"):
         _check_metadata(_bag_root(p) / "metadata.yaml")
     else:
