@@ -174,7 +174,7 @@ def test_a_bad_output_path_is_refused_before_the_work(places: dict[str, Path], a
 def test_a_recording_profile_whose_path_cannot_be_written_is_refused_with_its_line(places: dict[str, Path]) -> None:
     profile = places["tmp"] / "p.yaml"
     profile.write_text((REPO / "configs" / "sim-rover.yaml").read_text()
-                       + f"recording:\n  enabled: true\n  path: {places['dir']}\n")
+                       .replace("\nrecording:\n", f"\nrecording:\n  enabled: true\n  path: {places['dir']}\n", 1))
     line = profile.read_text().splitlines().index(f"  path: {places['dir']}") + 1
     expected = f"{profile}:{line}: recording.path: {places['dir']}: {IS_DIR}"
     for argv in (["check-config", str(profile)], ["--profile", str(profile), "--duration", "2", "--state-dir",

@@ -112,7 +112,7 @@ def test_numbers_must_be_numbers(tmp_path: Path, value: str, message: str) -> No
 
 
 def test_booleans_and_texts_are_strict_too(tmp_path: Path) -> None:
-    text = SIM + 'recording:\n  enabled: "true"\n'
+    text = SIM.replace("\nrecording:\n", '\nrecording:\n  enabled: "true"\n', 1)
     assert any("recording.enabled: expected true or false, got 'true'" in p for p in problems_of(tmp_path, text))
     assert any("name: Input should be a valid string (got 42)" in p
                for p in problems_of(tmp_path, SIM.replace("name: sim-rover", "name: 42", 1)))
