@@ -54,7 +54,7 @@ STRING = "std_msgs/msg/String"
 
 def export_rosbag2(session: SessionLog, out: Path) -> dict[str, int]:
     """Write ``session`` to the bag directory ``out`` (must not exist); messages per topic."""
-    from rosbags.rosbag2 import CompressionFormat, CompressionMode
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
 
     if out.exists():
         raise InputError(f"{out}: already exists (rosbag2 output must be a new directory)")
@@ -64,7 +64,7 @@ def export_rosbag2(session: SessionLog, out: Path) -> dict[str, int]:
     store = typestore()
     converter = _Converter(store, session)
     counts: dict[str, int] = {}
-    writer = _writer_class()(out, version=ROSBAG2_VERSION, storage_plugin=_storage_plugin())
+    writer = _writer_class()(out, version=ROSBAG2_VERSION, storage_plugin=StoragePlugin.MCAP)
     writer.set_compression(CompressionMode.STORAGE, CompressionFormat.ZSTD)  # zstd chunks, as ros2 bag -s mcap can
     with writer:
         connections: dict[str, Any] = {}
@@ -84,12 +84,6 @@ def export_rosbag2(session: SessionLog, out: Path) -> dict[str, int]:
             counts[topic] = counts.get(topic, 0) + 1
     _name_distro(out / "metadata.yaml")
     return counts
-
-
-def _storage_plugin() -> Any:
-    from rosbags.rosbag2 import StoragePlugin
-
-    return StoragePlugin.MCAP
 
 
 def _latched() -> Any:
