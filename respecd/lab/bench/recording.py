@@ -20,7 +20,7 @@ from pathlib import Path
 from types import SimpleNamespace
 from typing import Any
 
-from respecd.cli.args import positive_float, resolution, seed
+from respecd.argtypes import positive_float, resolution, seed
 
 FORMATS = {
     "raw": {"rgb_format": "raw", "thermal_format": "raw", "depth_format": "raw"},
@@ -111,8 +111,7 @@ def record(profile: Any, encodings: dict[str, dict[str, Any]], seconds: float, s
         taps = [SimpleNamespace(**{f"on_{k}": getattr(r, f"on_{k}") for k in TAPS}) for r in recorders]
         with tempfile.TemporaryDirectory() as state:
             context = DriverContext(seed=sim_seed, simulation=getattr(quiet, "simulation", None))
-            run = Session(quiet, clock, context, state_dir=Path(state), observers=taps,
-                          status_sink=lambda fields, line: None)
+            run = Session(quiet, clock, context, state_dir=Path(state), observers=taps)
             task = asyncio.create_task(run.run(duration=seconds))
             await clock.run(seconds)
             await task
