@@ -104,25 +104,33 @@ def record(profile: Any, encodings: dict[str, dict[str, Any]], seconds: float, s
                                                                    "queue_size": 65536, "rotate_mib": ONE_FILE}),
                               quiet, clock, drain_s=None)
                      for name, over in encodings.items()]
-        for recorder in recorders:
-            recorder.start()
         # the taps only: the recorders close after the session, with everything queued encoded
         # (a lockstep session queues faster than real time; the daemon's stop budget would drop it)
-        taps = [SimpleNamespace(**{f"on_{k}": getattr(r, f"on_{k}") for k in TAPS}) for r in recorders]
-        with tempfile.TemporaryDirectory() as state:
-            context = DriverContext(seed=sim_seed, simulation=getattr(quiet, "simulation", None))
-            run = Session(quiet, clock, context, state_dir=Path(state), observers=taps)
-            task = asyncio.create_task(run.run(duration=seconds))
-            await clock.run(seconds)
-            await task
+        taps = [SimpleNamespace(start=_nothing, close=_nothing, **{f"on_{k}": getattr(r, f"on_{k}") for k in TAPS})
+                for r in recorders]
+        try:
+            for recorder in recorders:
+                recorder.start()
+            with tempfile.TemporaryDirectory() as state:
+                context = DriverContext(seed=sim_seed, simulation=getattr(quiet, "simulation", None))
+                run = Session(quiet, clock, context, state_dir=Path(state), observers=taps)
+                task = asyncio.create_task(run.run(duration=seconds))
+                await clock.run(seconds)
+                await task
+        finally:  # a writer thread left open would keep the interpreter from exiting
+            for recorder in recorders:
+                await recorder.close()
         for recorder in recorders:
-            await recorder.close()
             if recorder.dropped or recorder.errors:
                 raise RuntimeError(f"{recorder.paths}: {recorder.dropped} dropped, {recorder.errors} not encoded")
 
     with asyncio.Runner(loop_factory=LockstepLoop) as runner:
         runner.run(session())
     return paths
+
+
+def _nothing() -> None:
+    pass
 
 
 def detections(profile: Any, log: Path, work: Path) -> list[tuple[float, tuple[Any, ...]]]:
