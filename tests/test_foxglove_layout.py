@@ -40,11 +40,12 @@ def test_layout_topics_are_recorded_channels() -> None:
 def test_percept_plots_read_fields_the_percept_channel_has() -> None:
     """Each plotted ``/respecd/percept.FIELD...`` is a field of respecd.Percept: dependence and sufficiency beside
     the contributions."""
-    from respecd.record.schemas import PERCEPT
+    from respecd.record.schemas import json_schema
 
+    percept = json_schema("respecd.Percept")
     paths = _values(json.loads(SHIPPED.read_text()))
     fields = {path.split(".")[1] for path in paths if path.startswith("/respecd/percept.")}
-    assert fields == {"contributions", "dependence", "sufficiency", "conf_agg"} and fields <= set(PERCEPT["properties"])
+    assert fields == {"contributions", "dependence", "sufficiency", "conf_agg"} and fields <= set(percept["properties"])
 
 
 def _values(node: object) -> list[str]:
