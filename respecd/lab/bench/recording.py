@@ -18,9 +18,12 @@ import os
 import tempfile
 from pathlib import Path
 from types import SimpleNamespace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from respecd.argtypes import positive_float, resolution, seed
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 FORMATS = {
     "raw": {"rgb_format": "raw", "thermal_format": "raw", "depth_format": "raw"},
@@ -48,7 +51,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         return compare(profile, names, args.seconds, args.seed, Path(work))
 
 
-def recording_config(profile: Any, name: str) -> dict[str, Any]:
+def recording_config(profile: Profile, name: str) -> dict[str, Any]:
     """The ``recording:`` overrides an encoding name stands for."""
     if name in FORMATS:
         return FORMATS[name]
@@ -61,7 +64,7 @@ def recording_config(profile: Any, name: str) -> dict[str, Any]:
     raise InputError(f"--formats: unknown encoding {name!r}; expected raw, lossless, profile or jpegQQ (jpeg80)")
 
 
-def compare(profile: Any, names: list[str], seconds: float, sim_seed: int, work: Path) -> dict[str, Any]:
+def compare(profile: Profile, names: list[str], seconds: float, sim_seed: int, work: Path) -> dict[str, Any]:
     """Record ``seconds`` of the simulated rover in every encoding of ``names``, replay each with
     the detector; per encoding: MB/s on disk and how its detections differ from the raw log's."""
     logs = record(profile, {n: recording_config(profile, n) for n in ["raw", *names]}, seconds, sim_seed, work)
@@ -75,11 +78,11 @@ def compare(profile: Any, names: list[str], seconds: float, sim_seed: int, work:
     return out
 
 
-def _rgb(profile: Any) -> Any:
+def _rgb(profile: Profile) -> Any:
     return next(s for s in profile.sensors if s.modality == "rgb")
 
 
-def _profile(base: Any, size: tuple[int, int]) -> Any:
+def _profile(base: Profile, size: tuple[int, int]) -> Profile:
     """The sim rover with RGB at ``size``, policy static (the replays differ only by their log)."""
     sensors = [s.model_copy(update={"resolution": size}) if s.modality == "rgb" else s for s in base.sensors]
     actions = base.controller.actions.model_copy(update={"rgb_resolutions": (size,)})
@@ -87,7 +90,7 @@ def _profile(base: Any, size: tuple[int, int]) -> Any:
     return base.model_copy(update={"sensors": sensors, "controller": controller})
 
 
-def record(profile: Any, encodings: dict[str, dict[str, Any]], seconds: float, sim_seed: int,
+def record(profile: Profile, encodings: dict[str, dict[str, Any]], seconds: float, sim_seed: int,
            work: Path) -> dict[str, Path]:
     """One lockstep simulated session (no detector) recorded by one recorder per encoding."""
     from respecd.drivers.base import DriverContext
@@ -133,7 +136,7 @@ def _nothing() -> None:
     pass
 
 
-def detections(profile: Any, log: Path, work: Path) -> list[tuple[float, tuple[Any, ...]]]:
+def detections(profile: Profile, log: Path, work: Path) -> list[tuple[float, tuple[Any, ...]]]:
     """(bundle time, detections) of every inference of a lockstep replay of ``log``."""
     import yaml
 
