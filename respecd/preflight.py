@@ -18,7 +18,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from respecd import filekind
+from respecd import filekind, pathkind
 from respecd.config import LoadedProfile
 from respecd.drivers.uvc import UVCConfig
 from respecd.errors import ConfigError
@@ -48,7 +48,8 @@ def check_state_dir(path: Path, create: bool = True) -> str | None:
     not show a read-only mount or a full disk. Without ``create`` (check-config) the folders made
     for the try are removed again, so asking leaves nothing behind."""
     if path.exists() and not path.is_dir():
-        return f"{path}: is a file, not a directory; the state directory holds the Q-table"
+        kind = pathkind.describe(path.stat().st_mode)
+        return f"{path}: is {kind}, not a directory; the state directory holds the Q-table"
     from respecd.outputs import write_error
 
     err = write_error(path, keep=create)
@@ -167,13 +168,26 @@ def _sensor_files(loaded: LoadedProfile) -> list[str]:
 
 
 def _qtable(loaded: LoadedProfile, state_dir: Path | None, policy: str | None) -> list[str]:
-    """A frozen policy (exploit) with a named table needs that table; learning starts one."""
+    """The table a learning or exploiting controller reads must be a file (a FIFO would hang the
+    load, a directory is no table); a frozen policy (exploit) with a named table needs that table."""
+    from respecd.control.persist import EXPECTED_SHORT, table_path
+    from respecd.control.statelock import LOCK_NAME
+
     controller = loaded.model.controller
-    if not controller.enabled or (policy or controller.policy) != "exploit" or not controller.table_file:
+    chosen = policy or controller.policy
+    if not controller.enabled or chosen not in ("learn", "exploit") or state_dir is None:
         return []
-    if state_dir is None:
-        return []
-    path = state_dir / controller.table_file
-    if not os.path.isfile(path):
-        return [_at(loaded, ("controller", "table_file"), f"{path}: no such Q-table (policy exploit reads it)")]
-    return []
+    path = table_path(state_dir, controller.table_file, loaded.model.name)
+
+    def named(problem: str) -> str:  # the profile's table_file, else the state directory's own name for it
+        if controller.table_file:
+            return _at(loaded, ("controller", "table_file"), problem)
+        return f"--state-dir: {problem}"
+
+    problems = [named(p) for p in [pathkind.problem(path, EXPECTED_SHORT)] if p]
+    if chosen == "learn":
+        problems += [f"--state-dir: {p}" for p in [pathkind.problem(state_dir / LOCK_NAME, "the daemon's lock file")]
+                     if p]
+    elif controller.table_file and not problems and not os.path.isfile(path):
+        problems.append(named(f"{path}: no such Q-table (policy exploit reads it)"))
+    return problems

@@ -19,7 +19,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
-from respecd.errors import ConfigError
+from respecd import pathkind
+from respecd.errors import ConfigError, InputError
 from respecd.profile_yaml import MAX_BYTES, KeyPath, parse
 
 BUILTIN_PREFIX = "builtin:"
@@ -126,13 +127,12 @@ def read_source(source: str) -> tuple[str, str, str]:
 
 def _read_file(path: Path) -> str:
     try:
-        with path.open("rb") as handle:  # at most one byte past the limit, whatever the file is
-            data = handle.read(MAX_BYTES + 1)  # (/dev/zero or a FIFO has no size to check first)
+        with pathkind.open_regular(path, "a profile (a YAML file)") as handle:  # a FIFO or a device: at once
+            data = handle.read(MAX_BYTES + 1)  # at most one byte past the limit
+            size = os.fstat(handle.fileno()).st_size
         if len(data) > MAX_BYTES:
-            size = path.stat().st_size if path.is_file() else 0
-            what = f"is {size} bytes, more than" if size > MAX_BYTES else "gives more bytes than"
             raise ConfigError(
-                f"{path}:1: profile {what} the {MAX_BYTES} allowed "
+                f"{path}:1: profile is {size} bytes, more than the {MAX_BYTES} allowed "
                 "(a profile is a few kB: is this the right file?)"
             )
         return data.decode("utf-8")
@@ -140,6 +140,8 @@ def _read_file(path: Path) -> str:
         raise ConfigError(f"{path}: no such file") from err
     except IsADirectoryError as err:
         raise ConfigError(f"{path}: is a directory, expected a profile (a YAML file)") from err
+    except InputError as err:
+        raise ConfigError(str(err)) from err
     except UnicodeDecodeError as err:
         line = err.object[: err.start].count(b"\n") + 1
         raise ConfigError(f"{path}:{line}: not UTF-8 text: byte {err.start} is {err.object[err.start]:#04x} "

@@ -3,6 +3,7 @@ files, deep nesting, duplicate keys, booleans and strings where numbers belong."
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import tracemalloc
@@ -135,12 +136,15 @@ def test_a_control_character_is_named_by_its_1_based_line_without_pyyamls_positi
 
 
 @pytest.mark.e2e
-def test_a_device_is_refused_by_size_not_read_whole(tmp_path: Path) -> None:
-    with pytest.raises(ConfigError, match=r"/dev/zero:1: profile gives more bytes than the 262144 allowed"):
+def test_a_device_or_a_fifo_is_refused_before_it_is_read(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match=r"^/dev/zero: is a character device, not a regular file; expected a profile"):
         read_profile("/dev/zero")
+    fifo = tmp_path / "p.yaml"
+    os.mkfifo(fifo)  # opening it for reading would wait for a writer, and SIGTERM could not end the wait
     result = subprocess.run(["bash", "-c", f"ulimit -v 3000000; exec {sys.executable} -m respecd.cli check-config "
-                             "/dev/zero"], capture_output=True, text=True, timeout=60)
-    assert result.returncode == 2 and "Traceback" not in result.stderr and "262144" in result.stdout + result.stderr
+                             f"/dev/zero {fifo}"], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 2 and "Traceback" not in result.stderr
+    assert f"{fifo}: is a FIFO (named pipe), not a regular file" in result.stderr
 
 
 def test_bytes_that_are_not_utf8_are_named_by_offset(tmp_path: Path) -> None:

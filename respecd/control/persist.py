@@ -23,12 +23,12 @@ import os
 import time
 import zipfile
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import structlog
 
-from respecd import filekind
+from respecd import filekind, pathkind
 from respecd.atomicfile import write_atomically
 from respecd.control.qlearning import QTable
 from respecd.errors import InputError
@@ -83,8 +83,14 @@ def save_table(path: Path, table: QTable, layout: dict[str, Any], info: dict[str
     write_atomically(path, buffer.getbuffer())
 
 
+EXPECTED_SHORT = "a respecd Q-table (.npz)"
 EXPECTED = ("expected a respecd Q-table: an .npz of plain arrays q, visits and meta, as the daemon and "
             "`respecd train-policy` write it")
+
+
+class TableAccessError(InputError):
+    """The table could not be read as a file (not a regular file, ...): the operator's to fix, not
+    damage to set aside — the daemon stops at start (exit 2) instead of forgetting what it learned."""
 
 
 def read_table(path: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
@@ -92,7 +98,7 @@ def read_table(path: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
     advice for a file of pickled objects (load it with allow_pickle): that would run its code."""
     try:
         # open the file ourselves: np.load leaks its handle when the zip directory is torn
-        with path.open("rb") as f:
+        with _open(path) as f:
             head = f.read(filekind.HEAD)
             if not head:
                 raise InputError(f"{path}: empty file (0 bytes), {EXPECTED}")
@@ -101,10 +107,6 @@ def read_table(path: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
                                  f"(first bytes {head[:8]!r}); {EXPECTED}")
             f.seek(0)
             q, visits, raw = _arrays(path, np.load(f, allow_pickle=False))
-    except FileNotFoundError as err:
-        raise InputError(f"{path}: no such file") from err
-    except IsADirectoryError as err:
-        raise InputError(f"{path}: is a directory, {EXPECTED}") from err
     except (zipfile.BadZipFile, EOFError) as err:
         raise InputError(f"{path}: damaged or truncated .npz archive ({err}); {EXPECTED}") from err
     except OSError as err:
@@ -123,6 +125,16 @@ def read_table(path: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
     if q.ndim != 2 or q.shape != visits.shape or q.dtype != np.float64 or not np.isfinite(q).all():
         raise InputError(f"{path}: q must be a finite float64 matrix with visits of the same shape, got {q.shape}")
     return meta, q, visits
+
+
+def _open(path: Path) -> BinaryIO:
+    """The table file for reading; TableAccessError when it is no file to read at all."""
+    try:
+        return pathkind.open_regular(path, EXPECTED_SHORT)  # a FIFO or a device: refused, never waited on
+    except FileNotFoundError as err:
+        raise InputError(f"{path}: no such file") from err
+    except InputError as err:
+        raise TableAccessError(str(err)) from err
 
 
 def _arrays(path: Path, data: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -147,11 +159,13 @@ def _array(path: Path, data: Any, name: str) -> np.ndarray:
 def load_into(path: Path, table: QTable, layout: dict[str, Any], set_aside: bool = True) -> bool:
     """Restore ``table`` from ``path`` if it matches; True if loaded. A bad file is set aside
     (``set_aside``, the live state directory's own table) or only reported (a replay reading
-    a robot's table must leave it as it is)."""
+    a robot's table must leave it as it is); one that is no file to read (TableAccessError) is raised."""
     if not path.exists():
         return False
     try:
         meta, q, visits = read_table(path)
+    except TableAccessError:
+        raise
     except InputError as err:
         _unusable(path, "corrupt", str(err), set_aside)
         return False

@@ -16,6 +16,7 @@ import os
 from collections.abc import Iterator
 from pathlib import Path
 
+from respecd import pathkind
 from respecd.errors import InputError
 
 LOCK_NAME = ".respecd.lock"
@@ -25,7 +26,11 @@ LOCK_NAME = ".respecd.lock"
 def learning_into(state_dir: Path) -> Iterator[None]:
     """Hold the state directory for this process while the block runs; InputError (exit 2) when
     another process holds it."""
-    with open(state_dir / LOCK_NAME, "a+", encoding="ascii") as handle:
+    try:
+        fd = pathkind.open_fd(state_dir / LOCK_NAME, "the daemon's lock file (it holds a pid)", os.O_RDWR | os.O_CREAT)
+    except OSError as err:
+        raise InputError(f"--state-dir {state_dir}: cannot open {LOCK_NAME}: {err.strerror or err}") from err
+    with os.fdopen(fd, "r+", encoding="ascii") as handle:
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import mmap
+import os
 import threading
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
@@ -25,6 +26,7 @@ import structlog
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Message, Metadata, Schema
 
+from respecd import pathkind
 from respecd.errors import InputError
 from respecd.messages import Frame, Modality
 from respecd.record import codec, legacy
@@ -254,16 +256,14 @@ def open_log(path: str | Path, verify: bool = False, warn: bool = True) -> Sessi
     p = Path(path)
     if not p.exists():
         raise InputError(f"{p}: no such file (expected an MCAP session log written by respecd --record)")
-    if not p.is_file():
-        raise InputError(f"{p}: not a regular file (expected an MCAP session log)")
-    size = p.stat().st_size
-    if size == 0:
-        raise InputError(f"{p}: empty file (0 bytes), expected an MCAP session log")
     try:
-        with open(p, "rb") as f:
+        with pathkind.open_regular(p, "an MCAP session log") as f:  # a FIFO or a device: refused at once
             head = f.read(len(MAGIC))
+            size = os.fstat(f.fileno()).st_size
     except OSError as err:  # a file we may not read (PermissionError), an I/O error
         raise InputError(f"{p}: cannot read session log: {err.strerror or err}") from err
+    if size == 0:
+        raise InputError(f"{p}: empty file (0 bytes), expected an MCAP session log")
     if head != MAGIC:
         raise InputError(f"{p}: not an MCAP file (byte 0: {head[:8]!r}, expected the MCAP magic {MAGIC!r})")
     session = SessionLog(path=p, size=size, warn=warn)

@@ -24,13 +24,13 @@ import struct
 import threading
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePath
 from typing import Any
 
 import cv2
 import numpy as np
 
-from respecd import filekind
+from respecd import filekind, pathkind
 from respecd.errors import InputError
 from respecd.filekind import ROS1_MAGIC
 from respecd.messages import Frame, Modality
@@ -52,15 +52,17 @@ def is_bag(path: str | Path) -> bool:
     ``ros2 bag record -s mcap`` writes, copied without its metadata.yaml) or a ROS 1 ``.bag``."""
     p = Path(path)
     if p.is_dir():
-        return (p / "metadata.yaml").is_file()
+        return (p / "metadata.yaml").exists()  # whatever it is: the layout check says what is wrong with it
     if p.suffix == ".bag":
         return True
-    return p.suffix in (".mcap", ".db3") and (p.parent / "metadata.yaml").is_file() or is_ros2_mcap(p)
+    return p.suffix in (".mcap", ".db3") and (p.parent / "metadata.yaml").exists() or is_ros2_mcap(p)
 
 
 def is_ros2_mcap(path: Path) -> bool:
     """An MCAP file whose header names the ``ros2`` profile (rosbag2's storage plugin and
     rosbags write it; respecd's own logs name none)."""
+    if pathkind.problem(path, "an MCAP file"):
+        return False  # a FIFO or a device is read by nobody here (open_log refuses it, naming it)
     try:
         head = filekind.read_head(path)
     except OSError:
@@ -73,7 +75,7 @@ def is_ros2_mcap(path: Path) -> bool:
 
 
 def _lone_storage(path: Path) -> bool:
-    return path.suffix == ".mcap" and not (path.parent / "metadata.yaml").is_file()
+    return path.suffix == ".mcap" and not (path.parent / "metadata.yaml").exists()
 
 
 def parse_topics(text: str | None, modalities: Iterable[str] = MODALITIES) -> dict[str, str]:
@@ -215,7 +217,7 @@ def _check_layout(p: Path) -> None:
 
 def _check_ros1(p: Path) -> None:
     try:
-        with p.open("rb") as handle:
+        with pathkind.open_regular(p, "a ROS 1 bag") as handle:
             head = handle.read(filekind.HEAD)
             size = os.fstat(handle.fileno()).st_size
             header = _ros1_bag_header(handle) if head.startswith(ROS1_MAGIC) else None
@@ -276,10 +278,10 @@ def _check_metadata(meta: Path) -> None:
     """A rosbag2's metadata.yaml, field by field: FILE:LINE: field: expected ..., got ..."""
     import yaml
 
-    if not meta.is_file():
+    if not meta.exists():
         return  # rosbags says which file is missing
     try:
-        with meta.open("rb") as handle:
+        with pathkind.open_regular(meta, "a rosbag2 metadata.yaml") as handle:
             data = handle.read(METADATA_MAX_BYTES + 1)
         if len(data) > METADATA_MAX_BYTES:
             raise InputError(f"{meta}: more than {METADATA_MAX_BYTES} bytes, expected a rosbag2 metadata.yaml")
@@ -299,11 +301,22 @@ def _check_metadata(meta: Path) -> None:
         _field(meta, fields[name], ("rosbag2_bagfile_information", name), nested)
     for i, path_node in enumerate(fields["relative_file_paths"].value):
         _expect(meta, path_node, ("rosbag2_bagfile_information", "relative_file_paths", i), str)
+        _check_storage_file(meta, path_node, i)
     for i, topic in enumerate(fields["topics_with_message_count"].value):
         where = ("rosbag2_bagfile_information", "topics_with_message_count", i)
         _expect(meta, topic, where, dict)
         entry = _field(meta, topic, where, _R2_TOPIC)
         _field(meta, entry["topic_metadata"], (*where, "topic_metadata"), _R2_TOPIC_META)
+
+
+def _check_storage_file(meta: Path, node: Any, i: int) -> None:
+    """A storage file metadata.yaml lists is a regular file inside the bag (rosbags opens it: a FIFO
+    there would block the open, and SIGTERM with it); a missing one rosbags names itself."""
+    where = f"{meta}:{node.start_mark.line + 1}: rosbag2_bagfile_information.relative_file_paths.{i}"
+    name = PurePath(node.value).name  # as rosbags reads it: the name, in the bag's folder
+    problem = pathkind.problem(meta.parent / name, "a rosbag2 storage file (.mcap or .db3)")
+    if problem:
+        raise InputError(f"{where}: {problem}")
 
 
 def _field(meta: Path, node: Any, where: tuple[Any, ...], wanted: dict[str, type]) -> dict[str, Any]:
