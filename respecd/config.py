@@ -30,6 +30,7 @@ from respecd.perception.config import PerceptionConfig
 from respecd.profile_overlay import Origin, Resolved, nearest, resolve
 from respecd.profile_yaml import KeyPath
 from respecd.record.config import RecordingConfig
+from respecd.record.live_config import LiveConfig
 from respecd.sensors import MAX_RATE_HZ, MIN_RATE_HZ, StrictModel
 from respecd.sim.config import SimulationConfig
 
@@ -97,6 +98,7 @@ class Profile(StrictModel):
     perception: PerceptionConfig = Field(PerceptionConfig(), description="Fusion detector and attribution.")
     controller: ControllerConfig = Field(ControllerConfig(), description="Q-learning controller.")
     recording: RecordingConfig = Field(RecordingConfig(), description="MCAP recording.")
+    live: LiveConfig = Field(LiveConfig(), description="The Foxglove live view's guard (--foxglove).")
     telemetry: TelemetryConfig = Field(TelemetryConfig(), description="Status line, power rails, watchdog.")
     simulation: SimulationConfig = Field(SimulationConfig(), description="The simulated world `sim` sensors look at.")
 

@@ -112,3 +112,11 @@ def test_every_syscall_the_daemon_makes_passes_the_filter(tmp_path):
     used = {line.split()[-1] for line in trace.read_text().splitlines()[2:] if line.split() and
             line.split()[0][0].isdigit() and line.split()[-1] != "total"}
     assert len(used) > 30 and not used - allowed, sorted(used - allowed)
+
+
+def test_the_descriptor_limit_holds_the_live_views_largest_cap():
+    from respecd.record.live import FDS_PER_CLIENT, FDS_SPARE
+    from respecd.record.live_config import MAX_CLIENTS
+
+    limit = int(_settings((SYSTEMD / "respecd.service").read_text())["LimitNOFILE"][-1])
+    assert limit >= MAX_CLIENTS * FDS_PER_CLIENT + FDS_SPARE

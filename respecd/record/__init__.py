@@ -23,7 +23,7 @@ def make_recorder(profile: Profile, path: str | None, clock: Clock, foxglove: st
     if foxglove is not None:
         from respecd.record.live import LiveView, parse_address
 
-        live = LiveView(*parse_address(foxglove), name=f"respecd {profile.name}")
+        live = LiveView(*parse_address(foxglove), name=f"respecd {profile.name}", config=profile.live)
     config = profile.recording
     if path is not None:
         config = config.model_copy(update={"enabled": True, "path": path})

@@ -7,7 +7,8 @@ live view alike, and only while somebody is watching: a channel is advertised wi
 message, and after that a sensor frame is encoded only while a client is subscribed to it.
 Bounded at both ends: the recorder's queue drops its oldest message when the worker falls
 behind, and the server keeps at most ``BACKLOG`` messages per client, dropping the oldest
-for a slow client. Nothing here can make the control loop wait.
+for a slow client. The public port is guarded (``live_bridge``: handshake timeout, connection
+cap; the profile's ``live:`` section). Nothing here can make the control loop wait.
 
 Loopback by default: the view has no authentication, so serving another interface is a
 deliberate ``--foxglove 0.0.0.0:8765`` (see systemd/respecd.service for the unit's
@@ -16,18 +17,22 @@ IPAddressAllow).
 
 from __future__ import annotations
 
+import resource
 from typing import Any
 
 import structlog
 
 from respecd.errors import ConfigError
 from respecd.record.codec import Message
+from respecd.record.live_config import LiveConfig
 from respecd.record.schemas import schema_def
 
 log = structlog.get_logger(__name__)
 
 DEFAULT_HOST = "127.0.0.1"
 BACKLOG = 64  # messages queued per client before its oldest are dropped (~2 s of the rover's images)
+FDS_PER_CLIENT = 3  # the viewer's socket and both ends of its loopback connection to the SDK's server
+FDS_SPARE = 256  # the rest of the daemon: devices, logs, torch's threads, the recorder's files
 
 
 def parse_address(text: str) -> tuple[str, int]:
@@ -45,11 +50,24 @@ def parse_address(text: str) -> tuple[str, int]:
     return host, port
 
 
+def ensure_descriptors(max_clients: int) -> None:
+    """Raise the soft RLIMIT_NOFILE (up to the hard one) so ``max_clients`` viewers fit beside the
+    rest of the daemon; ConfigError when the hard limit is too low (the unit's LimitNOFILE)."""
+    needed = max_clients * FDS_PER_CLIENT + FDS_SPARE
+    soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+    if soft != resource.RLIM_INFINITY and soft < needed:
+        if hard != resource.RLIM_INFINITY and hard < needed:
+            raise ConfigError(f"live.max_clients {max_clients} needs {needed} file descriptors, the limit is {hard} "
+                              "(raise LimitNOFILE in the unit, ulimit -n, or lower live.max_clients)")
+        resource.setrlimit(resource.RLIMIT_NOFILE, (needed, hard))
+
+
 class LiveView:
     """The Foxglove WebSocket server as a recorder sink (``wants``/``put``/``close``)."""
 
-    def __init__(self, host: str, port: int, name: str = "respecd") -> None:
+    def __init__(self, host: str, port: int, name: str = "respecd", config: LiveConfig | None = None) -> None:
         self.host, self.port, self.name = host, port, name
+        self.config = config or LiveConfig()
         self._context: Any = None
         self._server: Any = None
         self._channels: dict[str, Any] = {}
@@ -65,19 +83,21 @@ class LiveView:
 
         from respecd.record.live_bridge import SubprotocolBridge
 
+        ensure_descriptors(self.config.max_clients)
         self._context = foxglove.Context()
         try:
             self._server = foxglove.start_server(name=self.name, host="127.0.0.1", port=0,
                                                  context=self._context, message_backlog_size=BACKLOG)
         except Exception as err:  # the SDK raises its own error type
             raise ConfigError(f"--foxglove: cannot start the Foxglove server: {err}") from err
-        self._bridge = SubprotocolBridge(self.host, self.port, int(self._server.port))
+        self._bridge = SubprotocolBridge(self.host, self.port, int(self._server.port), self.config)
         try:
             self.port = self._bridge.start()
         except OSError as err:
             self._server.stop()
             raise ConfigError(f"--foxglove {self.host}:{self.port}: cannot listen: {err.strerror or err}") from err
-        log.info("live.serving", url=f"ws://{self.host}:{self.port}", backlog=BACKLOG)
+        log.info("live.serving", url=f"ws://{self.host}:{self.port}", max_clients=self.config.max_clients,
+                 backlog=BACKLOG)
         return self.port
 
     def wants(self, topic: str) -> bool:
@@ -105,4 +125,4 @@ class LiveView:
         server, self._server = self._server, None
         if server is not None:
             server.stop()
-            log.info("live.stopped")
+            log.info("live.stopped", refused=bridge.refusals.counts if bridge else {})

@@ -1,4 +1,4 @@
-"""Both names of the Foxglove WebSocket protocol on one port.
+"""The live view's public port: both names of the Foxglove WebSocket protocol, and a guard.
 
 foxglove-sdk's server speaks the protocol under its current subprotocol name,
 ``foxglove.sdk.v1``, and refuses the handshake of a client that asks for the earlier name,
@@ -7,6 +7,11 @@ ws-protocol reference clients). The protocol is the same under both names (Foxgl
 statement in its bridge migration notes), so this bridge takes the public port, rewrites the
 name in the HTTP upgrade handshake, and from then on passes bytes through unchanged to the
 SDK's server on a private loopback port.
+
+The port has no authentication, so the bridge guards it (``LiveConfig``): a handshake must
+complete within ``handshake_timeout_s``; at most ``max_clients`` connections at once (more are
+answered 503). Each viewer's arrival and departure is one log line;
+refusals are logged once per reason, then counted (``live.refused`` at most once a minute).
 
 It runs its own event loop in its own thread: a viewer's traffic never touches the control
 loop. A slow viewer stops reading; the SDK then drops that client's oldest messages
@@ -17,9 +22,14 @@ from __future__ import annotations
 
 import asyncio
 import threading
+import time
 from typing import Any
 
 import structlog
+
+from respecd.record.live_clients import Refusals, peer_name
+from respecd.record.live_config import LiveConfig
+from respecd.timeouts import within
 
 log = structlog.get_logger(__name__)
 
@@ -27,6 +37,7 @@ CURRENT = b"foxglove.sdk.v1"
 EARLIER = b"foxglove.websocket.v1"
 MAX_HEADER = 16 * 1024
 CHUNK = 256 * 1024
+ANSWERS = {503: b"Service Unavailable", 408: b"Request Timeout", 400: b"Bad Request"}
 
 
 def rewrite_request(head: bytes) -> tuple[bytes, bool]:
@@ -47,8 +58,11 @@ def rewrite_request(head: bytes) -> tuple[bytes, bool]:
 class SubprotocolBridge:
     """``host:port`` (public) -> ``127.0.0.1:upstream_port`` (the SDK's server)."""
 
-    def __init__(self, host: str, port: int, upstream_port: int) -> None:
+    def __init__(self, host: str, port: int, upstream_port: int, config: LiveConfig | None = None) -> None:
         self.host, self.port, self.upstream_port = host, port, upstream_port
+        self.config = config or LiveConfig()
+        self.refusals = Refusals()
+        self.connections = 0  # open now, handshakes in progress included
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._ready = threading.Event()
@@ -93,23 +107,66 @@ class SubprotocolBridge:
         task = asyncio.current_task()
         if task is not None:
             self._tasks.add(task)
-        up_writer: asyncio.StreamWriter | None = None
+        peer = peer_name(writer.get_extra_info("peername"))
+        self.connections += 1
         try:
-            head = await reader.readuntil(b"\r\n\r\n")
-            head, earlier = rewrite_request(head)
-            up_reader, up_writer = await asyncio.open_connection("127.0.0.1", self.upstream_port, limit=MAX_HEADER)
-            up_writer.write(head)
-            answer = await up_reader.readuntil(b"\r\n\r\n")
-            writer.write(answer.replace(CURRENT, EARLIER) if earlier else answer)
-            await asyncio.gather(_pipe(reader, up_writer), _pipe(up_reader, writer))
-        except (OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError):
-            pass  # a client that went away or spoke no HTTP: nothing to keep
+            if self.connections > self.config.max_clients:
+                await self._refuse(writer, 503, "max_clients", peer, max_clients=self.config.max_clients)
+                return
+            await self._serve(reader, writer, peer)
+        except asyncio.CancelledError:
+            pass  # the bridge is stopping: this connection's task simply ends
         finally:
-            for stream in (writer, up_writer):
-                if stream is not None:
-                    stream.close()
+            self.connections -= 1
+            writer.close()
             if task is not None:
                 self._tasks.discard(task)
+
+    async def _serve(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, peer: str) -> None:
+        try:
+            head = await within(reader.readuntil(b"\r\n\r\n"), self.config.handshake_timeout_s)
+        except asyncio.TimeoutError:
+            await self._refuse(writer, 408, "handshake_timeout", peer, after_s=self.config.handshake_timeout_s)
+            return
+        except asyncio.LimitOverrunError:
+            await self._refuse(writer, 400, "header_too_long", peer, limit=MAX_HEADER)
+            return
+        except (OSError, asyncio.IncompleteReadError):
+            return  # a client that went away before it said anything: nothing to keep or log
+        await self._pass_through(head, reader, writer, peer)
+
+    async def _pass_through(self, head: bytes, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
+                            peer: str) -> None:
+        head, earlier = rewrite_request(head)
+        started, reason, up_writer = time.monotonic(), "closed", None
+        try:
+            up_reader, up_writer = await asyncio.open_connection("127.0.0.1", self.upstream_port, limit=MAX_HEADER)
+            up_writer.write(head)
+            answer = await within(up_reader.readuntil(b"\r\n\r\n"), self.config.handshake_timeout_s)
+            writer.write(answer.replace(CURRENT, EARLIER) if earlier else answer)
+            log.info("live.client_connected", client=peer, clients=self.connections,
+                     subprotocol=(EARLIER if earlier else CURRENT).decode())
+            await _until_both_end(_pipe(reader, up_writer), _pipe(up_reader, writer))
+        except (OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError, asyncio.TimeoutError):
+            reason = "closed"
+        except asyncio.CancelledError:
+            reason = "stopped"
+            raise
+        finally:
+            if up_writer is not None:
+                up_writer.close()
+            log.info("live.client_left", client=peer, reason=reason, seconds=round(time.monotonic() - started, 1),
+                  clients=self.connections - 1)
+
+    async def _refuse(self, writer: asyncio.StreamWriter, status: int, reason: str, peer: str, **fields: Any) -> None:
+        """Answer a refused connection with an HTTP status and close it (logged once per reason)."""
+        self.refusals.note(reason, client=peer, status=status, **fields)
+        try:
+            writer.write(b"HTTP/1.1 %d %s\r\nContent-Length: 0\r\nConnection: close\r\n\r\n"
+                         % (status, ANSWERS[status]))
+            await within(writer.drain(), 1.0)
+        except (OSError, asyncio.TimeoutError):
+            pass
 
     def stop(self) -> None:
         loop, thread = self._loop, self._thread
@@ -119,10 +176,24 @@ class SubprotocolBridge:
         thread.join(5.0)
 
 
-async def _pipe(source: asyncio.StreamReader, sink: asyncio.StreamWriter) -> None:
+async def _until_both_end(*pipes: Any) -> None:
+    """Run the two directions; the first to fail (a stall, a reset) ends the other one too."""
+    tasks = [asyncio.ensure_future(p) for p in pipes]
     try:
-        while data := await source.read(CHUNK):
-            sink.write(data)
-            await sink.drain()  # a slow reader holds us here, and the SDK drops for it
+        done, _ = await asyncio.wait(tasks, return_when=asyncio.FIRST_EXCEPTION)
+        for task in done:
+            task.result()
+        await asyncio.gather(*tasks)
     finally:
-        sink.close()
+        for task in tasks:
+            task.cancel()
+        await asyncio.gather(*tasks, return_exceptions=True)
+
+
+async def _pipe(source: asyncio.StreamReader, sink: asyncio.StreamWriter) -> None:
+    """Copy until ``source`` ends, then close ``sink`` (an end passed on); on an error the caller
+    closes both sides."""
+    while data := await source.read(CHUNK):
+        sink.write(data)
+        await sink.drain()  # a slow reader holds us here, and the SDK drops for it
+    sink.close()

@@ -1,0 +1,134 @@
+"""The live view as a public surface (issue "Open doors"): half-open connections time out and
+connections are capped."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+import websockets
+from structlog.testing import capture_logs
+
+from respecd.clock import ManualClock
+from respecd.errors import ConfigError
+from respecd.messages import Frame
+from respecd.record.config import RecordingConfig
+from respecd.record.live import LiveView
+from respecd.record.live_config import LiveConfig
+from respecd.record.recorder import Recorder
+
+PROFILE = {"name": "guard-rig", "sensors": [{"name": "cam", "modality": "rgb"}]}
+PROTOCOL = ["foxglove.websocket.v1"]
+
+
+class Rig:
+    """A live view fed by a recorder with noisy 640x480 frames (JPEG ~250 kB: socket buffers fill fast)."""
+
+    def __init__(self, config: LiveConfig) -> None:
+        self.live = LiveView("127.0.0.1", 0, config=config)
+        self.clock = ManualClock()
+        self.recorder = Recorder(RecordingConfig(), PROFILE, self.clock, live=self.live, to_file=False)
+        self.frames = [np.random.default_rng(k).integers(0, 255, (480, 640, 3), np.uint8) for k in range(4)]
+        self.stop = asyncio.Event()
+
+    @property
+    def url(self) -> str:
+        return f"ws://127.0.0.1:{self.live.port}"
+
+    async def __aenter__(self) -> Rig:
+        self.recorder.start()
+        self.feeder = asyncio.create_task(self._feed())
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.stop.set()
+        await self.feeder
+        await self.recorder.close()
+
+    async def _feed(self) -> None:
+        i = 0
+        while not self.stop.is_set():
+            self.clock.set(i / 30)
+            self.recorder.on_frame("cam", Frame("rgb", i / 30, i, self.frames[i % 4]))
+            i += 1
+            await asyncio.sleep(0.02)
+
+
+def _events(logs: list[dict], name: str) -> list[dict]:
+    return [e for e in logs if e["event"] == name]
+
+
+async def _until(predicate, timeout: float = 30.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "condition not met in time"
+        await asyncio.sleep(0.05)
+
+
+async def _channels(ws, topic: str = "/sensors/cam") -> list[dict]:
+    """The channels advertised until ``topic`` is among them (they come as their first message does)."""
+    channels: list[dict] = []
+    while topic not in {c["topic"] for c in channels}:
+        message = await asyncio.wait_for(ws.recv(), 10)
+        if isinstance(message, str) and json.loads(message)["op"] == "advertise":
+            channels += json.loads(message)["channels"]
+    return channels
+
+
+async def test_a_half_open_connection_is_answered_408_and_closed() -> None:
+    async with Rig(LiveConfig(handshake_timeout_s=0.5)) as rig:
+        with capture_logs() as logs:
+            reader, writer = await asyncio.open_connection("127.0.0.1", rig.live.port)
+            writer.write(b"GET / HTTP/1.1\r\n")  # and nothing more
+            answer = await asyncio.wait_for(reader.read(), 10)
+            writer.close()
+            second, writer2 = await asyncio.open_connection("127.0.0.1", rig.live.port)
+            assert await asyncio.wait_for(second.read(), 10)
+            writer2.close()
+    assert answer.startswith(b"HTTP/1.1 408 Request Timeout")
+    refused = _events(logs, "live.refused")
+    assert [e["reason"] for e in refused] == ["handshake_timeout"]  # once; the second one is counted
+    assert rig.live._bridge is None  # closed
+
+
+async def test_connections_over_the_cap_are_answered_503_and_a_viewer_gets_in_again() -> None:
+    async with Rig(LiveConfig(max_clients=2)) as rig:
+        first = await websockets.connect(rig.url, subprotocols=PROTOCOL)
+        second = await websockets.connect(rig.url, subprotocols=PROTOCOL)
+        with pytest.raises(websockets.InvalidStatus) as refused:
+            await websockets.connect(rig.url, subprotocols=PROTOCOL)
+        assert refused.value.response.status_code == 503
+        await first.close()
+        await _until(lambda: rig.live._bridge.connections < 2)
+        third = await websockets.connect(rig.url, subprotocols=PROTOCOL)
+        assert await _channels(third)
+        for ws in (second, third):
+            await ws.close()
+
+
+def test_a_descriptor_limit_below_the_cap_is_a_config_error() -> None:
+    code = ("import resource; from respecd.record.live import ensure_descriptors; "
+            "resource.setrlimit(resource.RLIMIT_NOFILE, (300, 400)); "
+            "from respecd.errors import ConfigError\n"
+            "try:\n    ensure_descriptors(64)\nexcept ConfigError as e:\n    print(e)\n"
+            "ensure_descriptors(32); print(resource.getrlimit(resource.RLIMIT_NOFILE)[0])")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, check=True).stdout
+    assert "live.max_clients 64 needs 448 file descriptors, the limit is 400" in out
+    assert out.splitlines()[-1] == "352"  # raised to what 32 viewers need
+    assert ConfigError  # the type the daemon turns into exit 2
+
+
+def test_a_port_bound_twice_still_reports_clearly() -> None:
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        live = LiveView("127.0.0.1", taken.getsockname()[1])
+        with pytest.raises(ConfigError, match="cannot listen"):
+            live.open()
+        live.close()
