@@ -1,5 +1,5 @@
-"""The live view as a public surface (issue "Open doors"): half-open connections time out and
-connections are capped."""
+"""The live view as a public surface (issue "Open doors"): half-open connections time out, connections
+are capped, a viewer that stops reading is dropped."""
 
 from __future__ import annotations
 
@@ -81,6 +81,20 @@ async def _channels(ws, topic: str = "/sensors/cam") -> list[dict]:
     return channels
 
 
+async def _subscribe(ws, channels: list[dict]) -> None:
+    """Subscribe to every channel, until a frame arrives (the SDK may refuse a subscription to a
+    channel it advertised a moment before: "Unknown channel ID"; then ask again)."""
+    request = json.dumps({"op": "subscribe", "subscriptions": [
+        {"id": i, "channelId": c["id"]} for i, c in enumerate(channels)]})
+    await ws.send(request)
+    while True:
+        message = await asyncio.wait_for(ws.recv(), 10)
+        if isinstance(message, bytes) and message[0] == 1:  # op 1: message data of a subscription
+            return
+        if isinstance(message, str) and "Unknown channel" in message:
+            await ws.send(request)
+
+
 async def test_a_half_open_connection_is_answered_408_and_closed() -> None:
     async with Rig(LiveConfig(handshake_timeout_s=0.5)) as rig:
         with capture_logs() as logs:
@@ -110,6 +124,22 @@ async def test_connections_over_the_cap_are_answered_503_and_a_viewer_gets_in_ag
         assert await _channels(third)
         for ws in (second, third):
             await ws.close()
+
+
+async def test_a_viewer_that_stops_reading_is_dropped_and_logged_once() -> None:
+    async with Rig(LiveConfig(stall_s=0.5, backlog=4)) as rig:
+        with capture_logs() as logs:
+            stalled = await websockets.connect(rig.url, subprotocols=PROTOCOL, max_queue=1, max_size=None)
+            await _subscribe(stalled, await _channels(stalled))
+            # never reads again: its client stops taking bytes from the socket once its queue is full
+            await _until(lambda: _events(logs, "live.client_left"))
+            async with websockets.connect(rig.url, subprotocols=PROTOCOL) as healthy:
+                assert await _channels(healthy)
+            await stalled.close()
+    left = _events(logs, "live.client_left")[0]
+    assert left["reason"] == "stalled" and left["log_level"] == "warning"
+    assert len([e for e in logs if e["log_level"] in ("warning", "error")]) == 1
+    assert _events(logs, "live.client_connected")[0]["log_level"] == "info"
 
 
 def test_a_descriptor_limit_below_the_cap_is_a_config_error() -> None:

@@ -6,9 +6,10 @@ A sink of the recorder's worker thread, so a message is encoded once for the log
 live view alike, and only while somebody is watching: a channel is advertised with its first
 message, and after that a sensor frame is encoded only while a client is subscribed to it.
 Bounded at both ends: the recorder's queue drops its oldest message when the worker falls
-behind, and the server keeps at most ``BACKLOG`` messages per client, dropping the oldest
+behind, and the server keeps at most ``live.backlog`` messages per client, dropping the oldest
 for a slow client. The public port is guarded (``live_bridge``: handshake timeout, connection
-cap; the profile's ``live:`` section). Nothing here can make the control loop wait.
+cap, stalled viewers dropped; the profile's ``live:`` section). Nothing here can make the
+control loop wait.
 
 Loopback by default: the view has no authentication, so serving another interface is a
 deliberate ``--foxglove 0.0.0.0:8765`` (see systemd/respecd.service for the unit's
@@ -30,7 +31,6 @@ from respecd.record.schemas import schema_def
 log = structlog.get_logger(__name__)
 
 DEFAULT_HOST = "127.0.0.1"
-BACKLOG = 64  # messages queued per client before its oldest are dropped (~2 s of the rover's images)
 FDS_PER_CLIENT = 3  # the viewer's socket and both ends of its loopback connection to the SDK's server
 FDS_SPARE = 256  # the rest of the daemon: devices, logs, torch's threads, the recorder's files
 
@@ -87,7 +87,7 @@ class LiveView:
         self._context = foxglove.Context()
         try:
             self._server = foxglove.start_server(name=self.name, host="127.0.0.1", port=0,
-                                                 context=self._context, message_backlog_size=BACKLOG)
+                                                 context=self._context, message_backlog_size=self.config.backlog)
         except Exception as err:  # the SDK raises its own error type
             raise ConfigError(f"--foxglove: cannot start the Foxglove server: {err}") from err
         self._bridge = SubprotocolBridge(self.host, self.port, int(self._server.port), self.config)
@@ -97,7 +97,7 @@ class LiveView:
             self._server.stop()
             raise ConfigError(f"--foxglove {self.host}:{self.port}: cannot listen: {err.strerror or err}") from err
         log.info("live.serving", url=f"ws://{self.host}:{self.port}", max_clients=self.config.max_clients,
-                 backlog=BACKLOG)
+                 backlog=self.config.backlog)
         return self.port
 
     def wants(self, topic: str) -> bool:

@@ -10,12 +10,13 @@ SDK's server on a private loopback port.
 
 The port has no authentication, so the bridge guards it (``LiveConfig``): a handshake must
 complete within ``handshake_timeout_s``; at most ``max_clients`` connections at once (more are
-answered 503). Each viewer's arrival and departure is one log line;
+answered 503); a viewer whose socket
+takes nothing for ``stall_s`` is dropped. Each viewer's arrival and departure is one log line;
 refusals are logged once per reason, then counted (``live.refused`` at most once a minute).
 
 It runs its own event loop in its own thread: a viewer's traffic never touches the control
-loop. A slow viewer stops reading; the SDK then drops that client's oldest messages
-(``message_backlog_size``), so the bridge's buffers stay bounded.
+loop. A slow viewer reads slowly; the SDK then drops that client's oldest messages
+(``backlog``), so the bridge's buffers stay bounded.
 """
 
 from __future__ import annotations
@@ -37,7 +38,12 @@ CURRENT = b"foxglove.sdk.v1"
 EARLIER = b"foxglove.websocket.v1"
 MAX_HEADER = 16 * 1024
 CHUNK = 256 * 1024
+WRITE_HIGH = 256 * 1024  # bytes a viewer's transport buffers before the bridge stops reading for it
 ANSWERS = {503: b"Service Unavailable", 408: b"Request Timeout", 400: b"Bad Request"}
+
+
+class Stalled(Exception):
+    """A viewer took nothing from its socket for ``stall_s``."""
 
 
 def rewrite_request(head: bytes) -> tuple[bytes, bool]:
@@ -144,9 +150,12 @@ class SubprotocolBridge:
             up_writer.write(head)
             answer = await within(up_reader.readuntil(b"\r\n\r\n"), self.config.handshake_timeout_s)
             writer.write(answer.replace(CURRENT, EARLIER) if earlier else answer)
+            writer.transport.set_write_buffer_limits(high=WRITE_HIGH)
             log.info("live.client_connected", client=peer, clients=self.connections,
                      subprotocol=(EARLIER if earlier else CURRENT).decode())
-            await _until_both_end(_pipe(reader, up_writer), _pipe(up_reader, writer))
+            await _until_both_end(_pipe(reader, up_writer, None), _pipe(up_reader, writer, self.config.stall_s))
+        except Stalled:
+            reason = "stalled"
         except (OSError, asyncio.IncompleteReadError, asyncio.LimitOverrunError, asyncio.TimeoutError):
             reason = "closed"
         except asyncio.CancelledError:
@@ -155,8 +164,10 @@ class SubprotocolBridge:
         finally:
             if up_writer is not None:
                 up_writer.close()
-            log.info("live.client_left", client=peer, reason=reason, seconds=round(time.monotonic() - started, 1),
-                  clients=self.connections - 1)
+            level = log.warning if reason == "stalled" else log.info
+            level("live.client_left", client=peer, reason=reason, seconds=round(time.monotonic() - started, 1),
+                  clients=self.connections - 1,
+                  **({"stall_s": self.config.stall_s} if reason == "stalled" else {}))
 
     async def _refuse(self, writer: asyncio.StreamWriter, status: int, reason: str, peer: str, **fields: Any) -> None:
         """Answer a refused connection with an HTTP status and close it (logged once per reason)."""
@@ -190,10 +201,16 @@ async def _until_both_end(*pipes: Any) -> None:
         await asyncio.gather(*tasks, return_exceptions=True)
 
 
-async def _pipe(source: asyncio.StreamReader, sink: asyncio.StreamWriter) -> None:
-    """Copy until ``source`` ends, then close ``sink`` (an end passed on); on an error the caller
-    closes both sides."""
+async def _pipe(source: asyncio.StreamReader, sink: asyncio.StreamWriter, stall_s: float | None) -> None:
+    """Copy until ``source`` ends, then close ``sink`` (an end passed on); ``stall_s``: raise Stalled
+    when ``sink`` takes nothing for that long. On an error the caller closes both sides."""
     while data := await source.read(CHUNK):
         sink.write(data)
-        await sink.drain()  # a slow reader holds us here, and the SDK drops for it
+        if stall_s is None or sink.transport.get_write_buffer_size() <= WRITE_HIGH:
+            await sink.drain()  # at once below the high-water mark (raises if the connection is gone)
+            continue
+        try:
+            await within(sink.drain(), stall_s)  # a slow reader holds us here, and the SDK drops for it
+        except asyncio.TimeoutError:
+            raise Stalled from None
     sink.close()
