@@ -1,5 +1,5 @@
 """The live view as a public surface (issue "Open doors"): half-open connections time out, connections
-are capped, a viewer that stops reading is dropped."""
+are capped, a foreign browser origin is refused, a viewer that stops reading is dropped."""
 
 from __future__ import annotations
 
@@ -20,7 +20,7 @@ from respecd.errors import ConfigError
 from respecd.messages import Frame
 from respecd.record.config import RecordingConfig
 from respecd.record.live import LiveView
-from respecd.record.live_config import LiveConfig
+from respecd.record.live_config import DEFAULT_ORIGINS, LiveConfig, origin_allowed
 from respecd.record.recorder import Recorder
 
 PROFILE = {"name": "guard-rig", "sensors": [{"name": "cam", "modality": "rgb"}]}
@@ -124,6 +124,28 @@ async def test_connections_over_the_cap_are_answered_503_and_a_viewer_gets_in_ag
         assert await _channels(third)
         for ws in (second, third):
             await ws.close()
+
+
+@pytest.mark.parametrize("origin", ["http://evil.example", "null", "http://localhost.evil.example"])
+async def test_a_page_from_a_foreign_origin_is_refused(origin: str) -> None:
+    async with Rig(LiveConfig()) as rig:
+        with pytest.raises(websockets.InvalidStatus) as refused:
+            await websockets.connect(rig.url, subprotocols=PROTOCOL, origin=origin)  # type: ignore[arg-type]
+        assert refused.value.response.status_code == 403
+        for allowed in ("https://app.foxglove.dev", "http://localhost:8080", None):
+            async with websockets.connect(rig.url, subprotocols=PROTOCOL, origin=allowed) as ws:  # type: ignore[arg-type]
+                assert await _channels(ws)
+
+
+def test_origins_are_matched_by_scheme_host_and_port() -> None:
+    assert origin_allowed("http://127.0.0.1:5173", DEFAULT_ORIGINS)
+    assert not origin_allowed("http://127.0.0.1.nip.io", DEFAULT_ORIGINS)
+    assert not origin_allowed("https://app.foxglove.dev.evil.example", DEFAULT_ORIGINS)
+    assert origin_allowed("http://lab.local:9000", ["http://lab.local:9000"])
+    assert not origin_allowed("http://lab.local:9001", ["http://lab.local:9000"])
+    assert origin_allowed("null", ["*"])
+    with pytest.raises(ValueError, match="is not an origin"):
+        LiveConfig(allowed_origins=["app.foxglove.dev"])
 
 
 async def test_a_viewer_that_stops_reading_is_dropped_and_logged_once() -> None:

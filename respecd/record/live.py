@@ -8,8 +8,8 @@ message, and after that a sensor frame is encoded only while a client is subscri
 Bounded at both ends: the recorder's queue drops its oldest message when the worker falls
 behind, and the server keeps at most ``live.backlog`` messages per client, dropping the oldest
 for a slow client. The public port is guarded (``live_bridge``: handshake timeout, connection
-cap, stalled viewers dropped; the profile's ``live:`` section). Nothing here can make the
-control loop wait.
+cap, stalled viewers dropped, browser origins allowed by the profile's ``live:`` section).
+Nothing here can make the control loop wait.
 
 Loopback by default: the view has no authentication, so serving another interface is a
 deliberate ``--foxglove 0.0.0.0:8765`` (see systemd/respecd.service for the unit's
@@ -97,7 +97,7 @@ class LiveView:
             self._server.stop()
             raise ConfigError(f"--foxglove {self.host}:{self.port}: cannot listen: {err.strerror or err}") from err
         log.info("live.serving", url=f"ws://{self.host}:{self.port}", max_clients=self.config.max_clients,
-                 backlog=self.config.backlog)
+                 backlog=self.config.backlog, origins=self.config.allowed_origins)
         return self.port
 
     def wants(self, topic: str) -> bool:

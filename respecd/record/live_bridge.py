@@ -10,7 +10,7 @@ SDK's server on a private loopback port.
 
 The port has no authentication, so the bridge guards it (``LiveConfig``): a handshake must
 complete within ``handshake_timeout_s``; at most ``max_clients`` connections at once (more are
-answered 503); a viewer whose socket
+answered 503); a browser page from an origin not allowed is answered 403; a viewer whose socket
 takes nothing for ``stall_s`` is dropped. Each viewer's arrival and departure is one log line;
 refusals are logged once per reason, then counted (``live.refused`` at most once a minute).
 
@@ -28,8 +28,8 @@ from typing import Any
 
 import structlog
 
-from respecd.record.live_clients import Refusals, peer_name
-from respecd.record.live_config import LiveConfig
+from respecd.record.live_clients import Refusals, header_value, peer_name
+from respecd.record.live_config import LiveConfig, origin_allowed
 from respecd.timeouts import within
 
 log = structlog.get_logger(__name__)
@@ -39,7 +39,7 @@ EARLIER = b"foxglove.websocket.v1"
 MAX_HEADER = 16 * 1024
 CHUNK = 256 * 1024
 WRITE_HIGH = 256 * 1024  # bytes a viewer's transport buffers before the bridge stops reading for it
-ANSWERS = {503: b"Service Unavailable", 408: b"Request Timeout", 400: b"Bad Request"}
+ANSWERS = {503: b"Service Unavailable", 403: b"Forbidden", 408: b"Request Timeout", 400: b"Bad Request"}
 
 
 class Stalled(Exception):
@@ -139,10 +139,14 @@ class SubprotocolBridge:
             return
         except (OSError, asyncio.IncompleteReadError):
             return  # a client that went away before it said anything: nothing to keep or log
-        await self._pass_through(head, reader, writer, peer)
+        origin = header_value(head, b"origin")
+        if origin is not None and not origin_allowed(origin, self.config.allowed_origins):
+            await self._refuse(writer, 403, "origin", peer, origin=origin[:200])
+            return
+        await self._pass_through(head, reader, writer, peer, origin)
 
     async def _pass_through(self, head: bytes, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
-                            peer: str) -> None:
+                            peer: str, origin: str | None) -> None:
         head, earlier = rewrite_request(head)
         started, reason, up_writer = time.monotonic(), "closed", None
         try:
@@ -151,7 +155,7 @@ class SubprotocolBridge:
             answer = await within(up_reader.readuntil(b"\r\n\r\n"), self.config.handshake_timeout_s)
             writer.write(answer.replace(CURRENT, EARLIER) if earlier else answer)
             writer.transport.set_write_buffer_limits(high=WRITE_HIGH)
-            log.info("live.client_connected", client=peer, clients=self.connections,
+            log.info("live.client_connected", client=peer, origin=origin, clients=self.connections,
                      subprotocol=(EARLIER if earlier else CURRENT).decode())
             await _until_both_end(_pipe(reader, up_writer, None), _pipe(up_reader, writer, self.config.stall_s))
         except Stalled:

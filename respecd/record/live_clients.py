@@ -22,6 +22,15 @@ def peer_name(address: Any) -> str:
     return f"[{host}]:{address[1]}" if ":" in host else f"{host}:{address[1]}"
 
 
+def header_value(head: bytes, name: bytes) -> str | None:
+    """The value of HTTP header ``name`` (lower case) in a request head, or None."""
+    for line in head.split(b"\r\n")[1:]:
+        key, sep, value = line.partition(b":")
+        if sep and key.strip().lower() == name:
+            return value.strip().decode("latin-1")
+    return None
+
+
 class Refusals:
     """Connections turned away: the first of each reason logged, later ones counted and summed up
     at most once per ``SUMMARY_S``, and in ``counts`` for the closing line."""

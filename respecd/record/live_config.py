@@ -1,15 +1,23 @@
 """Profile section ``live:``: how the Foxglove live view (``--foxglove``) guards its port.
 
 The view has no authentication, so it is treated as a public surface: a handshake must
-complete in time, connections are capped, a viewer that stops reading is dropped.
+complete in time, connections are capped, a viewer that stops reading is dropped, and a
+browser page may connect only from an allowed origin — a page on the operator's laptop
+(any site) could otherwise open ``ws://robot:8765`` and read the robot's cameras.
 """
 
 from __future__ import annotations
 
-from pydantic import Field
+from urllib.parse import urlsplit
+
+from pydantic import Field, field_validator
 
 from respecd.sensors import StrictModel
 
+# Foxglove's web app, its desktop app (its pages load from file://) and pages served from this
+# machine's loopback (any port). A client that sends no Origin is no browser page: it passes.
+DEFAULT_ORIGINS = ("https://app.foxglove.dev", "file://", "http://localhost", "https://localhost",
+                   "http://127.0.0.1", "https://127.0.0.1", "http://[::1]", "https://[::1]")
 MAX_CLIENTS = 256  # the unit's LimitNOFILE=4096 holds 3 descriptors a viewer at this cap, and the rest
 
 
@@ -30,3 +38,50 @@ class LiveConfig(StrictModel):
         16, ge=4, le=1024, description="Messages queued per viewer before its oldest are dropped (about 0.5 s "
         "of the simulated rover's channels; each sensor frame is up to a few hundred kB).",
     )
+    allowed_origins: list[str] = Field(
+        list(DEFAULT_ORIGINS), description="Browser origins (scheme://host[:port]; without a port any port) "
+        "whose pages may connect; '*' allows any. A client that sends no Origin header is not a browser page "
+        "and is always let in.",
+    )
+
+    @field_validator("allowed_origins")
+    @classmethod
+    def _origins(cls, value: list[str]) -> list[str]:
+        for entry in value:
+            if entry != "*" and not _is_origin(entry):
+                raise ValueError(f"{entry!r} is not an origin: expected scheme://host[:port] (e.g. "
+                                 "https://app.foxglove.dev, http://localhost:8080), file:// or '*'")
+        return value
+
+
+def _is_origin(entry: str) -> bool:
+    key = _origin_key(entry)
+    return key is not None and bool(key[0]) and (bool(key[1]) or key[0] == "file")
+
+
+def _origin_key(text: str) -> tuple[str, str, int | None] | None:
+    """(scheme, host, port) of an origin; None when it is not one (a path, a port that is no number)."""
+    try:
+        parts = urlsplit(text.strip().lower())
+        port = parts.port
+    except ValueError:
+        return None
+    if parts.path not in ("", "/") or parts.query or parts.fragment:
+        return None
+    return parts.scheme, parts.hostname or "", port
+
+
+def origin_allowed(origin: str, allowed: list[str] | tuple[str, ...]) -> bool:
+    """Whether a browser page from ``origin`` (the Origin header's value) may connect: an entry
+    without a port allows every port of its scheme and host. ``null`` (a sandboxed or local page
+    in some browsers) passes only ``*``."""
+    if "*" in allowed:
+        return True
+    got = _origin_key(origin)
+    if got is None or not got[0]:
+        return False
+    for entry in allowed:
+        want = _origin_key(entry)
+        if want is not None and want[:2] == got[:2] and want[2] in (None, got[2]):
+            return True
+    return False
