@@ -1,5 +1,6 @@
 """The live view as a public surface (issue "Open doors"): half-open connections time out, connections
-are capped, a foreign browser origin is refused, a viewer that stops reading is dropped."""
+are capped, a foreign browser origin is refused, a viewer that stops reading is dropped, client
+errors are logged once per client with a count."""
 
 from __future__ import annotations
 
@@ -162,6 +163,30 @@ async def test_a_viewer_that_stops_reading_is_dropped_and_logged_once() -> None:
     assert left["reason"] == "stalled" and left["log_level"] == "warning"
     assert len([e for e in logs if e["log_level"] in ("warning", "error")]) == 1
     assert _events(logs, "live.client_connected")[0]["log_level"] == "info"
+
+
+async def test_a_client_that_sends_garbage_is_logged_once_with_a_count() -> None:
+    async with Rig(LiveConfig()) as rig:
+        with capture_logs() as logs:
+            async with websockets.connect(rig.url, subprotocols=PROTOCOL) as ws:
+                drain = asyncio.create_task(_drain(ws))
+                for _ in range(300):
+                    await ws.send(json.dumps({"op": "no-such-op"}))
+                await _until(lambda: not drain.done() or True)
+                await asyncio.sleep(1.0)
+                drain.cancel()
+            await _until(lambda: _events(logs, "live.client_left"))
+    errors = _events(logs, "live.client_error")
+    assert len(errors) == 1 and "no-such-op" in errors[0]["message"]
+    assert _events(logs, "live.client_left")[0]["client_errors"] > 1
+
+
+async def _drain(ws) -> None:
+    try:
+        async for _ in ws:
+            pass
+    except websockets.ConnectionClosed:
+        pass
 
 
 def test_a_descriptor_limit_below_the_cap_is_a_config_error() -> None:

@@ -25,6 +25,7 @@ import structlog
 
 from respecd.errors import ConfigError
 from respecd.record.codec import Message
+from respecd.record.live_clients import ClientLog
 from respecd.record.live_config import LiveConfig
 from respecd.record.schemas import schema_def
 
@@ -72,6 +73,7 @@ class LiveView:
         self._server: Any = None
         self._channels: dict[str, Any] = {}
         self._bridge: Any = None
+        self._clients = ClientLog()
 
     def open(self) -> int:
         """Start serving; the port really bound (``port`` 0 picks a free one).
@@ -85,16 +87,19 @@ class LiveView:
 
         ensure_descriptors(self.config.max_clients)
         self._context = foxglove.Context()
+        self._clients.install()
         try:
             self._server = foxglove.start_server(name=self.name, host="127.0.0.1", port=0,
                                                  context=self._context, message_backlog_size=self.config.backlog)
         except Exception as err:  # the SDK raises its own error type
+            self._clients.remove()
             raise ConfigError(f"--foxglove: cannot start the Foxglove server: {err}") from err
-        self._bridge = SubprotocolBridge(self.host, self.port, int(self._server.port), self.config)
+        self._bridge = SubprotocolBridge(self.host, self.port, int(self._server.port), self.config, self._clients)
         try:
             self.port = self._bridge.start()
         except OSError as err:
             self._server.stop()
+            self._clients.remove()
             raise ConfigError(f"--foxglove {self.host}:{self.port}: cannot listen: {err.strerror or err}") from err
         log.info("live.serving", url=f"ws://{self.host}:{self.port}", max_clients=self.config.max_clients,
                  backlog=self.config.backlog, origins=self.config.allowed_origins)
@@ -125,4 +130,5 @@ class LiveView:
         server, self._server = self._server, None
         if server is not None:
             server.stop()
+            self._clients.remove()
             log.info("live.stopped", refused=bridge.refusals.counts if bridge else {})

@@ -64,9 +64,11 @@ def rewrite_request(head: bytes) -> tuple[bytes, bool]:
 class SubprotocolBridge:
     """``host:port`` (public) -> ``127.0.0.1:upstream_port`` (the SDK's server)."""
 
-    def __init__(self, host: str, port: int, upstream_port: int, config: LiveConfig | None = None) -> None:
+    def __init__(self, host: str, port: int, upstream_port: int, config: LiveConfig | None = None,
+                 clients: Any = None) -> None:
         self.host, self.port, self.upstream_port = host, port, upstream_port
         self.config = config or LiveConfig()
+        self.clients = clients  # live_clients.ClientLog: the SDK's log lines per viewer (None: not gated)
         self.refusals = Refusals()
         self.connections = 0  # open now, handshakes in progress included
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -148,9 +150,12 @@ class SubprotocolBridge:
     async def _pass_through(self, head: bytes, reader: asyncio.StreamReader, writer: asyncio.StreamWriter,
                             peer: str, origin: str | None) -> None:
         head, earlier = rewrite_request(head)
-        started, reason, up_writer = time.monotonic(), "closed", None
+        started, reason, up_writer, key = time.monotonic(), "closed", None, None
         try:
             up_reader, up_writer = await asyncio.open_connection("127.0.0.1", self.upstream_port, limit=MAX_HEADER)
+            key = peer_name(up_writer.get_extra_info("sockname"))  # how the SDK's log lines name this viewer
+            if self.clients is not None:
+                self.clients.arrived(key, peer)
             up_writer.write(head)
             answer = await within(up_reader.readuntil(b"\r\n\r\n"), self.config.handshake_timeout_s)
             writer.write(answer.replace(CURRENT, EARLIER) if earlier else answer)
@@ -165,12 +170,13 @@ class SubprotocolBridge:
         except asyncio.CancelledError:
             reason = "stopped"
             raise
-        finally:
+        finally:  # gone first: the SDK's complaints about the connection closed here are not the viewer's
+            errors = self.clients.left(key) if self.clients is not None and key is not None else 0
             if up_writer is not None:
                 up_writer.close()
             level = log.warning if reason == "stalled" else log.info
             level("live.client_left", client=peer, reason=reason, seconds=round(time.monotonic() - started, 1),
-                  clients=self.connections - 1,
+                  client_errors=errors, clients=self.connections - 1,
                   **({"stall_s": self.config.stall_s} if reason == "stalled" else {}))
 
     async def _refuse(self, writer: asyncio.StreamWriter, status: int, reason: str, peer: str, **fields: Any) -> None:
