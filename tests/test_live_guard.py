@@ -1,6 +1,7 @@
-"""The live view as a public surface (issue "Open doors"): half-open connections time out, connections
-are capped, a foreign browser origin is refused, a viewer that stops reading is dropped, client
-errors are logged once per client with a count."""
+"""The live view as a public surface (issue "Open doors", items 2-5 and 13): half-open connections
+time out, connections are capped, a foreign browser origin is refused, a viewer that stops
+reading is dropped, client errors are logged once per client with a count, and handing messages
+to viewers is the live view's own thread's work, never the recorder's."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import json
 import socket
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -19,6 +21,7 @@ from structlog.testing import capture_logs
 from respecd.clock import ManualClock
 from respecd.errors import ConfigError
 from respecd.messages import Frame
+from respecd.record.codec import Message
 from respecd.record.config import RecordingConfig
 from respecd.record.live import LiveView
 from respecd.record.live_config import DEFAULT_ORIGINS, LiveConfig, origin_allowed
@@ -187,6 +190,28 @@ async def _drain(ws) -> None:
             pass
     except websockets.ConnectionClosed:
         pass
+
+
+def test_the_fan_out_runs_on_the_live_views_thread_and_drops_its_oldest() -> None:
+    live = LiveView("127.0.0.1", 0, config=LiveConfig(queue=8))
+    live.open()
+    release, seen = threading.Event(), []
+
+    def slow_log(message: Message, log_ns: int) -> None:
+        seen.append((threading.current_thread().name, log_ns))
+        release.wait(10)
+
+    live._log = slow_log  # type: ignore[method-assign]
+    try:
+        for ns in range(20):
+            live.put(Message("/x", "respecd.Percept", b"{}", {}), ns, 0.0)  # returns at once, whatever viewers do
+        time.sleep(0.2)
+        release.set()
+        time.sleep(0.2)
+    finally:
+        live.close()
+    assert {name for name, _ in seen} == {"respecd-live"}
+    assert live.dropped >= 20 - 8 - 1 and seen[-1][1] == 19  # the newest kept, the oldest dropped
 
 
 def test_a_descriptor_limit_below_the_cap_is_a_config_error() -> None:

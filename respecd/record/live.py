@@ -5,11 +5,12 @@ protocol, served by foxglove-sdk's own server (open it in Foxglove: "Open connec
 A sink of the recorder's worker thread, so a message is encoded once for the log and the
 live view alike, and only while somebody is watching: a channel is advertised with its first
 message, and after that a sensor frame is encoded only while a client is subscribed to it.
-Bounded at both ends: the recorder's queue drops its oldest message when the worker falls
-behind, and the server keeps at most ``live.backlog`` messages per client, dropping the oldest
-for a slow client. The public port is guarded (``live_bridge``: handshake timeout, connection
-cap, stalled viewers dropped, browser origins allowed by the profile's ``live:`` section).
-Nothing here can make the control loop wait.
+Handing a message to every viewer (the SDK copies it into each one's queue) is the live
+view's own thread's work: ``put`` only queues it (``live.queue``, oldest dropped and counted),
+so viewers cost neither the recording nor the control loop. Bounded everywhere: that queue,
+the server's ``live.backlog`` messages per client (oldest dropped for a slow one), and the
+public port's guard (``live_bridge``: handshake timeout, connection cap, stalled viewers
+dropped, browser origins allowed by the profile's ``live:`` section).
 
 Loopback by default: the view has no authentication, so serving another interface is a
 deliberate ``--foxglove 0.0.0.0:8765`` (see systemd/respecd.service for the unit's
@@ -19,11 +20,14 @@ IPAddressAllow).
 from __future__ import annotations
 
 import resource
+import threading
+from collections import deque
 from typing import Any
 
 import structlog
 
 from respecd.errors import ConfigError
+from respecd.priority import lower_thread_priority
 from respecd.record.codec import Message
 from respecd.record.live_clients import ClientLog
 from respecd.record.live_config import LiveConfig
@@ -69,11 +73,16 @@ class LiveView:
     def __init__(self, host: str, port: int, name: str = "respecd", config: LiveConfig | None = None) -> None:
         self.host, self.port, self.name = host, port, name
         self.config = config or LiveConfig()
+        self.dropped = 0  # messages the live view's thread did not get to (the oldest in its queue)
         self._context: Any = None
         self._server: Any = None
         self._channels: dict[str, Any] = {}
         self._bridge: Any = None
         self._clients = ClientLog()
+        self._queue: deque[tuple[Message, int]] = deque()
+        self._cond = threading.Condition()
+        self._thread: threading.Thread | None = None
+        self._closing = False
 
     def open(self) -> int:
         """Start serving; the port really bound (``port`` 0 picks a free one).
@@ -101,6 +110,8 @@ class LiveView:
             self._server.stop()
             self._clients.remove()
             raise ConfigError(f"--foxglove {self.host}:{self.port}: cannot listen: {err.strerror or err}") from err
+        self._thread = threading.Thread(target=self._run, name="respecd-live", daemon=True)
+        self._thread.start()
         log.info("live.serving", url=f"ws://{self.host}:{self.port}", max_clients=self.config.max_clients,
                  backlog=self.config.backlog, origins=self.config.allowed_origins)
         return self.port
@@ -110,6 +121,30 @@ class LiveView:
         return channel is None or channel.has_sinks()  # unknown yet: advertise it with this message
 
     def put(self, message: Message, log_ns: int, t: float) -> None:
+        """Queue ``message`` for the viewers (the recorder's thread: returns at once)."""
+        with self._cond:
+            if len(self._queue) >= self.config.queue:
+                self._queue.popleft()
+                self.dropped += 1
+            self._queue.append((message, log_ns))
+            self._cond.notify()
+
+    def _run(self) -> None:
+        """The live view's thread: every queued message to every viewer subscribed to it."""
+        lower_thread_priority()  # viewers are the least urgent work of the daemon
+        while True:
+            with self._cond:
+                while not self._queue and not self._closing:
+                    self._cond.wait()
+                if self._closing:
+                    return
+                message, log_ns = self._queue.popleft()
+            try:
+                self._log(message, log_ns)
+            except Exception:  # noqa: BLE001 - thread boundary: one bad message must not end the view
+                log.exception("live.send_failed", topic=message.topic)
+
+    def _log(self, message: Message, log_ns: int) -> None:
         channel = self._channels.get(message.topic)
         if channel is None:
             channel = self._channels[message.topic] = self._channel(message)
@@ -124,6 +159,12 @@ class LiveView:
                                 context=self._context, metadata=dict(message.channel_meta))
 
     def close(self) -> None:
+        with self._cond:
+            self._closing = True
+            self._cond.notify()
+        thread, self._thread = self._thread, None
+        if thread is not None:
+            thread.join(2.0)
         bridge, self._bridge = self._bridge, None
         if bridge is not None:
             bridge.stop()
@@ -131,4 +172,4 @@ class LiveView:
         if server is not None:
             server.stop()
             self._clients.remove()
-            log.info("live.stopped", refused=bridge.refusals.counts if bridge else {})
+            log.info("live.stopped", dropped=self.dropped, refused=bridge.refusals.counts if bridge else {})
