@@ -175,9 +175,11 @@ async def test_a_client_that_sends_garbage_is_logged_once_with_a_count() -> None
         with capture_logs() as logs:
             async with websockets.connect(rig.url, subprotocols=PROTOCOL) as ws:
                 drain = asyncio.create_task(_drain(ws))
-                for _ in range(300):
-                    await ws.send(json.dumps({"op": "no-such-op"}))
-                await _until(lambda: not drain.done() or True)
+                try:
+                    for _ in range(300):
+                        await ws.send(json.dumps({"op": "no-such-op"}))
+                except websockets.ConnectionClosed:
+                    pass  # the SDK may drop a client whose error answers pile up: that is fine too
                 await asyncio.sleep(1.0)
                 drain.cancel()
             await _until(lambda: _events(logs, "live.client_left"))
