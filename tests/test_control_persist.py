@@ -173,3 +173,73 @@ def test_policy_show_on_garbage_exits_2(tmp_path: Path) -> None:
     result = run_cli("policy", "show", str(path))
     assert result.returncode == 2 and "Traceback" not in result.stderr
     assert f"{path}: not a respecd Q-table" in result.stderr and "allow_pickle" not in result.stderr
+
+
+def _rewrite(path: Path, meta_changes: dict | None = None, **arrays: np.ndarray) -> None:
+    """The saved table with some meta fields or arrays replaced (as a hand edit or a bad writer would)."""
+    import json
+
+    with np.load(path) as data:
+        q, visits, meta = data["q"], data["visits"], json.loads(data["meta"].tobytes())
+    meta.update(meta_changes or {})
+    raw = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
+    np.savez_compressed(path, **{"q": q, "visits": visits, "meta": raw, **arrays})
+
+
+@pytest.mark.parametrize("change, named", [
+    ({"updates": None}, "meta.updates: expected a whole number >= 0, got None"),
+    ({"updates": "12"}, "meta.updates: expected a whole number >= 0, got '12'"),
+    ({"updates": -3}, "meta.updates"),
+    ({"updates": True}, "meta.updates"),
+    ({"epsilon": float("nan")}, "meta.epsilon: expected a number from 0 to 1"),
+    ({"epsilon": 7}, "meta.epsilon"),
+    ({"fingerprint": 5}, "meta.fingerprint"),
+    ({"layout": []}, "meta.layout"),
+])
+def test_a_bad_meta_field_sets_the_table_aside_with_the_reason(tmp_path: Path, change: dict, named: str,
+                                                               caplog: pytest.LogCaptureFixture) -> None:
+    from structlog.testing import capture_logs
+
+    path = tmp_path / "q.npz"
+    save_table(path, _table(), LAYOUT, {})
+    _rewrite(path, change)
+    fresh = QTable(3, 2, Learning(init="zero"))
+    with capture_logs() as logs:
+        assert not load_into(path, fresh, LAYOUT)  # no crash: learning starts fresh
+    assert not path.exists() and len(list(tmp_path.glob("q.npz.corrupt-*"))) == 1
+    assert named in logs[0]["detail"] and logs[0]["event"] == "qtable_set_aside"
+    assert fresh.updates == 0
+
+
+@pytest.mark.parametrize("arrays, named", [
+    ({"visits": np.full((3, 2), -1, np.int64)}, "visits: expected counts >= 0, got -1 at state 0, action 0"),
+    ({"visits": np.zeros((3, 2), np.float64)}, "visits: expected whole numbers"),
+    ({"q": np.array([[0.0, np.inf], [0, 0], [0, 0]])}, "q: expected finite values, got inf at state 0, action 1"),
+    ({"q": np.zeros((3, 2), np.float32)}, "q: expected a non-empty float64 matrix"),
+])
+def test_bad_arrays_are_named_with_the_cell(tmp_path: Path, arrays: dict, named: str) -> None:
+    path = tmp_path / "q.npz"
+    save_table(path, _table(), LAYOUT, {})
+    _rewrite(path, **arrays)
+    with pytest.raises(InputError) as info:
+        read_table(path)
+    assert named in str(info.value)
+
+
+def test_a_table_with_negative_visits_no_longer_crashes_the_daemon(tmp_path: Path) -> None:
+    """visits -1 made the controller divide by zero at its first update, on every restart."""
+    import subprocess
+    import sys
+
+    state = tmp_path / "st"
+    state.mkdir()
+    run = [sys.executable, "-m", "respecd.cli", "--duration", "4", "--state-dir", str(state), "--log-format", "json"]
+    first = subprocess.run(run, capture_output=True, text=True, timeout=180)
+    assert first.returncode == 0, first.stderr[-2000:]
+    table = state / "qtable-sim-rover.npz"
+    with np.load(table) as data:
+        shape = data["visits"].shape
+    _rewrite(table, {"updates": None}, visits=np.full(shape, -1, np.int64))
+    second = subprocess.run(run, capture_output=True, text=True, timeout=180)
+    assert second.returncode == 0 and "Traceback" not in second.stdout + second.stderr, second.stderr[-2000:]
+    assert "qtable_set_aside" in second.stdout and list(state.glob("qtable-sim-rover.npz.corrupt-*"))

@@ -9,9 +9,10 @@ Most cells keep their initial value, so a fresh 3645 × 15 table is 2 kB on disk
 
 Writes are atomic: a temp file in the same directory, fsync, rename over the old file,
 fsync of the directory — a crash leaves the old table or the new one, never half of one.
-A corrupt file, another version, or a table for a different state/action space is renamed
-aside (``NAME.corrupt-YYYYmmddTHHMMSS`` / ``.mismatch-...``) with a warning, and learning
-starts fresh: a bad table must never stop the robot.
+A corrupt file (any field of the wrong type, out of range or not finite: every one is
+checked), another version, or a table for a different state/action space is renamed aside
+(``NAME.corrupt-YYYYmmddTHHMMSS`` / ``.mismatch-...``) with a warning naming why, and learning
+starts fresh: a bad table must never stop the robot, nor crash it at every restart.
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import math
 import os
 import time
 import zipfile
@@ -122,9 +124,47 @@ def read_table(path: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
         raise InputError(f"{path}: meta.format is not {FORMAT!r}")
     if meta.get("version") != VERSION:
         raise InputError(f"{path}: meta.version is {meta.get('version')!r}, expected {VERSION}")
-    if q.ndim != 2 or q.shape != visits.shape or q.dtype != np.float64 or not np.isfinite(q).all():
-        raise InputError(f"{path}: q must be a finite float64 matrix with visits of the same shape, got {q.shape}")
+    _check_meta(path, meta)
+    _check_arrays(path, q, visits)
     return meta, q, visits
+
+
+def _check_meta(path: Path, meta: dict[str, Any]) -> None:
+    """Every field the daemon reads, of its type and in its range: a bad value is a damaged table
+    (set aside), never a TypeError at load or a division by zero at the next update."""
+    checks = (
+        ("fingerprint", lambda v: isinstance(v, str) and v != "", "a non-empty text"),
+        ("layout", lambda v: isinstance(v, dict), "a mapping (the state and action layout)"),
+        ("updates", lambda v: _is_int(v) and v >= 0, "a whole number >= 0"),
+        ("epsilon", lambda v: _is_number(v) and 0.0 <= v <= 1.0, "a number from 0 to 1"),
+    )
+    for name, valid, expected in checks:
+        if name not in meta or not valid(meta[name]):
+            got = f"{meta[name]!r}" if name in meta else "nothing"
+            raise InputError(f"{path}: meta.{name}: expected {expected}, got {got[:80]}")
+
+
+def _check_arrays(path: Path, q: np.ndarray, visits: np.ndarray) -> None:
+    if q.ndim != 2 or q.dtype != np.float64 or q.size == 0:
+        raise InputError(f"{path}: q: expected a non-empty float64 matrix (states x actions), got {q.dtype} {q.shape}")
+    if not np.isfinite(q).all():
+        bad = np.argwhere(~np.isfinite(q))[0]
+        raise InputError(f"{path}: q: expected finite values, got {q[tuple(bad)]} at state {bad[0]}, action {bad[1]}")
+    if visits.shape != q.shape or visits.dtype.kind not in "iu":
+        raise InputError(f"{path}: visits: expected whole numbers of q's shape {q.shape}, got {visits.dtype} "
+                         f"{visits.shape}")
+    if (visits < 0).any():
+        bad = np.argwhere(visits < 0)[0]
+        raise InputError(f"{path}: visits: expected counts >= 0, got {visits[tuple(bad)]} at state {bad[0]}, "
+                         f"action {bad[1]}")
+
+
+def _is_int(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
 def _open(path: Path) -> BinaryIO:
@@ -173,7 +213,7 @@ def load_into(path: Path, table: QTable, layout: dict[str, Any], set_aside: bool
         detail = f"table is for another state/action space (fingerprint {meta.get('fingerprint')})"
         _unusable(path, "mismatch", detail, set_aside)
         return False
-    table.restore(q, visits, int(meta.get("updates", 0)), float(meta.get("epsilon", table.epsilon)))
+    table.restore(q, visits, meta["updates"], meta["epsilon"])
     log.info("qtable_loaded", path=str(path), updates=table.updates, epsilon=round(table.epsilon, 4))
     return True
 

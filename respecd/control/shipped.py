@@ -40,6 +40,6 @@ def load_shipped(table: QTable, layout: dict[str, Any], path: Path | None = None
     if meta.get("fingerprint") != fingerprint(layout) or q.shape != table.shape:
         log.warning("shipped_qtable_mismatch", path=str(path), fingerprint=meta.get("fingerprint"))
         return False
-    table.restore(q, visits, int(meta.get("updates", 0)), float(meta.get("epsilon", table.epsilon)))
+    table.restore(q, visits, meta["updates"], meta["epsilon"])
     log.info("qtable_loaded", path=str(path), updates=table.updates, shipped=True)
     return True
