@@ -185,6 +185,8 @@ def _qtable(loaded: LoadedProfile, state_dir: Path | None, policy: str | None) -
         return f"--state-dir: {problem}"
 
     problems = [named(p) for p in [pathkind.problem(path, EXPECTED_SHORT)] if p]
+    if not problems and os.path.exists(path) and not os.access(path, os.R_OK, effective_ids=True):
+        problems.append(named(f"{path}: cannot read the Q-table (permission denied); fix its permissions"))
     if chosen == "learn":
         problems += [f"--state-dir: {p}" for p in [pathkind.problem(state_dir / LOCK_NAME, "the daemon's lock file")]
                      if p]

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -243,3 +245,46 @@ def test_a_table_with_negative_visits_no_longer_crashes_the_daemon(tmp_path: Pat
     second = subprocess.run(run, capture_output=True, text=True, timeout=180)
     assert second.returncode == 0 and "Traceback" not in second.stdout + second.stderr, second.stderr[-2000:]
     assert "qtable_set_aside" in second.stdout and list(state.glob("qtable-sim-rover.npz.corrupt-*"))
+
+
+@contextlib.contextmanager
+def _not_root() -> Iterator[None]:
+    """Root reads any file: as root (CI containers), act as nobody for the block (effective ids)."""
+    if os.geteuid() != 0:
+        yield
+        return
+    os.setegid(65534)
+    os.seteuid(65534)
+    try:
+        yield
+    finally:
+        os.seteuid(0)
+        os.setegid(0)
+
+
+def test_an_unreadable_table_is_an_error_not_corruption() -> None:
+    """Mode 000 under the daemon's user was renamed .corrupt-... and learning restarted from zero."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(dir="/tmp") as folder:  # pytest's tmp_path is in a root-only folder
+        state = Path(folder)
+        state.chmod(0o777)
+        path = state / "qtable-sim-rover.npz"
+        save_table(path, _table(), LAYOUT, {})
+        path.chmod(0)
+        _refused_not_set_aside(state, path)
+
+
+def _refused_not_set_aside(state: Path, path: Path) -> None:
+    from respecd.config import read_profile
+    from respecd.control.persist import TableAccessError
+    from respecd.preflight import check_profile
+
+    profile = read_profile("builtin:sim-rover")
+    check_profile(profile, state)  # imports what it needs while it may still read the interpreter's files
+    with _not_root():
+        with pytest.raises(TableAccessError, match="cannot read the Q-table: Permission denied"):
+            load_into(path, QTable(3, 2, Learning()), LAYOUT)
+        problems = check_profile(profile, state)
+    assert path.exists() and not list(state.glob("*.corrupt-*"))
+    assert f"--state-dir: {path}: cannot read the Q-table (permission denied); fix its permissions" in problems

@@ -91,8 +91,9 @@ EXPECTED = ("expected a respecd Q-table: an .npz of plain arrays q, visits and m
 
 
 class TableAccessError(InputError):
-    """The table could not be read as a file (not a regular file, ...): the operator's to fix, not
-    damage to set aside — the daemon stops at start (exit 2) instead of forgetting what it learned."""
+    """The table could not be read as a file (not a regular file, no permission to read it): the
+    operator's to fix, not damage to set aside — the daemon stops at start (exit 2) instead of
+    forgetting what it learned."""
 
 
 def read_table(path: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
@@ -175,6 +176,18 @@ def _open(path: Path) -> BinaryIO:
         raise InputError(f"{path}: no such file") from err
     except InputError as err:
         raise TableAccessError(str(err)) from err
+    except OSError as err:  # not ours to read (EACCES), a file system gone: not damage to the table
+        raise TableAccessError(f"{path}: cannot read the Q-table: {err.strerror or err} (as user "
+                               f"{_user()}); fix its permissions or the state directory's") from err
+
+
+def _user() -> str:
+    import pwd
+
+    try:
+        return pwd.getpwuid(os.geteuid()).pw_name
+    except KeyError:
+        return str(os.geteuid())
 
 
 def _arrays(path: Path, data: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
