@@ -125,7 +125,7 @@ class Daemon:
         pipeline = self.session.pipeline
         recording = self.recorder.recording_status() if self.recorder is not None else None
         fields = pipeline_fields(pipeline, getattr(self.recorder, "dropped", 0), recording)
-        fields["degraded"] = self.liveness.degraded(pipeline.drivers, pipeline.applied, recording)
+        fields["degraded"] = self.liveness.degraded(pipeline.drivers, pipeline.applied, recording, fields.get("qtable"))
         fields["stalled"] = self.stalls()
         return fields
 

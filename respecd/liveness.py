@@ -72,8 +72,9 @@ class Liveness:
         return problems
 
     def degraded(self, drivers: Mapping[str, Any], applied: Mapping[str, Any],
-                 recording: Mapping[str, Any] | None = None) -> list[str]:
-        """What runs below par (for STATUS=): sensors without frames or paused, a paused recorder."""
+                 recording: Mapping[str, Any] | None = None, qtable: Mapping[str, Any] | None = None) -> list[str]:
+        """What runs below par (for STATUS=): sensors without frames or paused, a paused recorder,
+        a Q-table the state directory will not take."""
         now = self.clock.now()
         out = []
         for name, driver in drivers.items():
@@ -89,6 +90,8 @@ class Liveness:
                 out.append(f"{name} no frames {since}{error}")
         if recording and recording.get("state") == "paused":
             out.append(f"recording paused ({recording.get('reason')})")
+        if qtable:
+            out.append(f"Q-table unsaved for {qtable['since_s']:.0f} s ({qtable['error']})")
         return out
 
 

@@ -95,6 +95,9 @@ def pipeline_fields(pipeline: Pipeline, recorder_dropped: int = 0,
                       action_name, pipeline.applied)
     if recording is not None:
         fields["recording"] = recording
+    unsaved = controller.table_status() if controller is not None and hasattr(controller, "table_status") else None
+    if unsaved is not None:  # the state directory refuses the Q-table's saves
+        fields["qtable"] = unsaved
     return fields
 
 
@@ -122,6 +125,8 @@ def format_line(fields: Mapping[str, Any], modalities: Mapping[str, str]) -> str
         parts.append(_recording(fields["recording"]))
     if "action" in fields:
         parts.append(f"action {fields['action']} r={fields['reward']:+.2f}")
+    if "qtable" in fields:
+        parts.append(f"qtable UNSAVED {fields['qtable']['since_s']:.0f}s ({fields['qtable']['error']})")
     return " | ".join(parts)
 
 

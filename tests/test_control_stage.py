@@ -31,7 +31,7 @@ class BrokenRadar(SimDriver):
 class Rig:
     """Real SimDrivers + the stage; the test moves the clock and plays the synchronizer."""
 
-    def __init__(self, tmp_path: Path, policy: str, broken_radar: bool = False) -> None:
+    def __init__(self, tmp_path: Path, policy: str, broken_radar: bool = False, save_every: int = 1000) -> None:
         profile = load_profile("builtin:sim-rover")
         self.clock = ManualClock()
         context = DriverContext(
@@ -46,7 +46,7 @@ class Rig:
                     sensor.model_copy(update={"render_in_thread": "never"}), self.clock, context
                 )
         config = profile.controller.model_copy(
-            update={"policy": policy, "system_probe": False, "min_dwell_s": 0.0, "save_every": 1000}
+            update={"policy": policy, "system_probe": False, "min_dwell_s": 0.0, "save_every": save_every}
         )
         self.stage = ControllerStage(config, profile, self.drivers, self.clock, tmp_path)
         self.decisions: list[Decision] = []
@@ -150,3 +150,38 @@ async def test_exploit_with_an_empty_state_dir_uses_the_shipped_table(tmp_path: 
     await rig.run(1.5)
     assert rig.stage.controller.table.updates > 0  # learned offline by `respecd train-policy`
     assert not list(tmp_path.glob("*.npz"))  # exploit never writes a table
+
+
+async def test_a_state_directory_that_fails_is_one_error_a_status_flag_and_a_summary(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A state directory that refused every save logged qtable_save_failed once a second (40 in 40 s)."""
+    import errno
+
+    from structlog.testing import capture_logs
+
+    import respecd.control.stage as stage_module
+    from respecd.status import format_line
+
+    rig = Rig(tmp_path, "learn", save_every=1)
+    real_save, statuses = stage_module.save_table, []
+
+    def flaky_save(*args, **kwargs):
+        statuses.append(rig.stage.table_status())
+        if rig.clock.now() < 20.0:
+            raise OSError(errno.EROFS, "Read-only file system")
+        return real_save(*args, **kwargs)
+
+    monkeypatch.setattr(stage_module, "save_table", flaky_save)
+    with capture_logs() as logs:
+        await rig.run(40.0)
+    failed = [e for e in logs if e["event"] == "qtable_save_failed"]
+    recovered = [e for e in logs if e["event"] == "qtable_save_recovered"]
+    assert len(failed) == 1 and failed[0]["log_level"] == "error" and failed[0]["error"] == "Read-only file system"
+    assert len(recovered) == 1 and recovered[0]["failures"] >= 2 and recovered[0]["unsaved_s"] >= 15
+    assert len(statuses) < 30  # retried with backoff, not at every decision
+    unsaved = next(s for s in statuses if s is not None)
+    assert unsaved["state"] == "unsaved" and unsaved["error"] == "Read-only file system"
+    assert rig.stage.table_status() is None and rig.stage.table_path.exists()
+    line = format_line({"t": 9.0, "sensors": {}, "sync": {"rate_hz": 10, "health": "good", "jitter_ms": 0,
+                                                           "stale": 0}, "drops": {}, "qtable": unsaved}, {})
+    assert "qtable UNSAVED" in line and "Read-only file system" in line

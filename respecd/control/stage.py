@@ -16,7 +16,7 @@ import contextlib
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import structlog
 
@@ -58,6 +58,21 @@ class TableFiles:
     def state_dir(cls, directory: Path, config: ControllerConfig, profile_name: str) -> TableFiles:
         path = table_path(Path(directory), config.table_file, profile_name)
         return cls(path, path, set_aside=True)
+
+
+SAVE_RETRY_S = 5.0  # first wait (session s) before a failed save is tried again; doubles
+MAX_SAVE_RETRY_S = 300.0
+
+
+@dataclass
+class SaveFailure:
+    """Saves of the Q-table failing since ``since`` (the state directory full, read-only, gone)."""
+
+    since: float
+    first_error: str
+    error: str = ""
+    failures: int = 0
+    retry_at: float = 0.0
 
 
 class DriverSensors:
@@ -124,6 +139,7 @@ class ControllerStage:
         self._features_off_loop = isinstance(clock, MonotonicClock)  # a wall clock (live, --speed 1|2)
         self._prepared = False
         self._saved_updates = 0
+        self._unsaved: SaveFailure | None = None  # the state directory refusing the table's saves
 
     # public ---------------------------------------------------------------------------
     @property
@@ -163,6 +179,11 @@ class ControllerStage:
         """Save the Q-table (learn mode) so the next start resumes from it."""
         if self._prepared and self.config.policy == "learn":
             await self._save()
+            failure, table = self._unsaved, self.controller.table
+            if failure is not None and table is not None:  # what this run learned since is lost
+                log.error("qtable_unsaved_at_stop", path=str(self.tables.save), error=failure.error,
+                          failures=failure.failures, unsaved_s=round(self.clock.now() - failure.since, 1),
+                          updates_lost=table.updates - self._saved_updates)
 
     async def prepare(self) -> None:
         """Load the Q-table and prime the system probe (once: a supervisor restart keeps the table)."""
@@ -216,10 +237,19 @@ class ControllerStage:
             **{k: round(v, 4) for k, v in decision.terms.items() if k not in ("reward", "held")},
         )
 
+    def table_status(self) -> dict[str, Any] | None:
+        """For the status line: None while saves succeed, else since when and why they fail."""
+        failure = self._unsaved
+        if failure is None:
+            return None
+        return {"state": "unsaved", "since_s": round(self.clock.now() - failure.since, 1),
+                "failures": failure.failures, "error": failure.error}
+
     async def _maybe_save(self, decision: Decision) -> None:
         table = self.controller.table
         if self.config.policy == "learn" and table is not None:
-            if table.updates - self._saved_updates >= self.config.save_every:
+            due = table.updates - self._saved_updates >= self.config.save_every
+            if due and (self._unsaved is None or self.clock.now() >= self._unsaved.retry_at):
                 await self._save()
 
     async def _save(self) -> None:
@@ -230,10 +260,27 @@ class ControllerStage:
         try:
             await asyncio.to_thread(save_table, self.tables.save, table, self.controller.layout(), info)
         except OSError as err:
-            log.error("qtable_save_failed", path=str(self.tables.save), error=str(err))
+            self._save_failed(err)
             return
         self._saved_updates = table.updates
+        if self._unsaved is not None:
+            failure, self._unsaved = self._unsaved, None
+            log.info("qtable_save_recovered", path=str(self.tables.save), failures=failure.failures,
+                     unsaved_s=round(self.clock.now() - failure.since, 1), first_error=failure.first_error)
         log.info("qtable_saved", path=str(self.tables.save), updates=table.updates)
+
+    def _save_failed(self, err: OSError) -> None:
+        """One error line when saves start failing; then retries back off (the status line says it
+        is unsaved), and ``qtable_save_recovered`` sums it up once a save succeeds."""
+        now, error = self.clock.now(), err.strerror or str(err)
+        failure = self._unsaved
+        if failure is None:
+            failure = self._unsaved = SaveFailure(since=now, first_error=error)
+            log.error("qtable_save_failed", path=str(self.tables.save), error=error,
+                      retry="with backoff; the status line shows it unsaved, recovery is logged once")
+        failure.failures += 1
+        failure.error = error
+        failure.retry_at = now + min(SAVE_RETRY_S * 2 ** (failure.failures - 1), MAX_SAVE_RETRY_S)
 
 
 def _capabilities(drivers: Mapping[str, Driver]) -> dict[str, Capabilities]:
