@@ -28,6 +28,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import structlog
 
 from respecd import filekind, pathkind
 from respecd.errors import InputError
@@ -36,6 +37,8 @@ from respecd.record.bag_layout import bag_root, check_layout
 from respecd.record.reader import ChannelInfo, Demux
 from respecd.record.ros_image import image_pixels
 
+log = structlog.get_logger(__name__)
+
 MODALITIES: tuple[Modality, ...] = ("rgb", "thermal", "radar", "depth", "imu")
 IMAGE_TYPES = ("sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage")
 POINTS_TYPE = "sensor_msgs/msg/PointCloud2"
@@ -43,6 +46,7 @@ IMU_TYPE = "sensor_msgs/msg/Imu"
 _VELOCITY = ("v", "velocity", "doppler", "radial_velocity")
 _SNR = ("snr", "intensity", "power")
 _PC2_DTYPES = {1: "i1", 2: "u1", 3: "<i2", 4: "<u2", 5: "<i4", 6: "<u4", 7: "<f4", 8: "<f8"}
+SKIPPED_LISTED = 5  # bad messages named per topic in the report (the rest are counted)
 _DESERIALIZE = threading.Lock()  # every replay driver reads its topic in a read-ahead thread of its own
 
 
@@ -101,6 +105,7 @@ class BagLog:
     size: int = 0
     truncated: bool = False
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
+    skipped: dict[str, dict[int, str]] = field(default_factory=dict)  # topic -> index in the topic -> why
     _demux: Demux | None = field(default=None, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -152,11 +157,35 @@ class BagLog:
         topic = self.topic_map[sensor]
         messages = demux.messages_for(sensor) if demux is not None else self.messages([topic])
         for seq, (_, (deserialize, connection), ns, raw) in enumerate(messages):
-            with _DESERIALIZE:  # rosbags builds its deserializers on first use: not thread-safe
-                msg = deserialize(raw, connection.msgtype)
-            data = to_array(msg, connection.msgtype, sensor)  # type: ignore[arg-type]
+            try:
+                with _DESERIALIZE:  # rosbags builds its deserializers on first use: not thread-safe
+                    msg = deserialize(raw, connection.msgtype)
+                data = to_array(msg, connection.msgtype, sensor)  # type: ignore[arg-type]
+                frame_id = msg.header.frame_id
+            except Exception as err:  # noqa: BLE001 - a robot's bag is foreign data: whatever one message is,
+                self._skip(topic, seq, err)  # it costs that message, never the rest of the sensor's replay
+                continue
             yield Frame(modality=sensor, t=(ns - self.start_ns) / 1e9, seq=seq, data=data,  # type: ignore[arg-type]
-                        meta={"topic": topic, "frame_id": msg.header.frame_id})
+                        meta={"topic": topic, "frame_id": frame_id})
+
+    def _skip(self, topic: str, index: int, err: Exception) -> None:
+        """A message that does not deserialize or convert: counted per topic, the first one logged."""
+        why = f"{type(err).__name__}: {err}"[:300]
+        with self._lock:
+            entries = self.skipped.setdefault(topic, {})
+            if index in entries:
+                return  # met again by another pass over the bag (the first frames, then the replay)
+            entries[index] = why
+        if len(entries) == 1:
+            log.warning("bag.message_skipped", path=str(self.path), topic=topic, index=index, why=why,
+                        note="further bad messages of this topic are counted and reported at the end")
+
+    def skipped_report(self) -> dict[str, dict[str, Any]]:
+        """Per topic: how many messages were skipped, and the first few (index in the topic, why)."""
+        with self._lock:
+            return {topic: {"count": len(entries),
+                            "first": [{"index": i, "why": w} for i, w in sorted(entries.items())[:SKIPPED_LISTED]]}
+                    for topic, entries in self.skipped.items()}
 
 
 def open_bag(path: str | Path, topics: dict[str, str] | None) -> BagLog:

@@ -49,7 +49,21 @@ def run_replay(args: argparse.Namespace, signals: Any = None) -> int:
                     save_table=getattr(args, "save_table", None), signals=signals,
                     topics=getattr(args, "topics", None))
     print(report_out.table(report))
-    return 0
+    return 1 if _report_skipped(report) else 0
+
+
+def _report_skipped(report: dict[str, Any]) -> bool:
+    """A ROS bag's messages that could not be read, per topic (topic, index, why) on stderr; True if any
+    (the exit status is then 1: the replay ran, but without those frames)."""
+    skipped: dict[str, Any] = {}
+    for entry in report["policies"].values():
+        skipped.update(entry.get("skipped") or {})
+    for topic, lost in skipped.items():
+        first = "; ".join(f"index {s['index']}: {s['why']}" for s in lost["first"])
+        more = f" (and {lost['count'] - len(lost['first'])} more)" if lost["count"] > len(lost["first"]) else ""
+        print(f"respecd: {report['log']['path']}: {topic}: {lost['count']} message(s) skipped, unreadable: "
+              f"{first}{more}", file=sys.stderr)
+    return bool(skipped)
 
 
 def replay(log_path: str | Path, *, config: str | Path | None = None, policy: str | None = None, speed: str = "max",
@@ -79,6 +93,8 @@ def replay(log_path: str | Path, *, config: str | Path | None = None, policy: st
     tables = _tables(profile, state_dir, save_table)
     entry = _Replay(profile, session, speed, t0, span, seed, tables, observe).run(signals)
     entry.update(policy=profile.controller.policy, seed=seed, speed=speed, truncated=session.truncated)
+    if hasattr(session, "skipped_report"):  # a ROS bag: its unreadable messages, per topic
+        entry["skipped"] = session.skipped_report()
     return _emit(report, session, entry)
 
 
