@@ -76,3 +76,57 @@ def test_a_replay_reports_skipped_messages_and_exits_1(tmp_path: Path, capsys: p
     assert re.search(rf"{TOPIC}: 2 message\(s\) skipped, unreadable: index 5: SerdeError: .*; index 12: ", err)
     entry = json.loads((tmp_path / "r.json").read_text())["policies"]["learn"]
     assert entry["skipped"][TOPIC]["count"] == 2
+
+
+def _lie(bag: Path, duration: int | None = None, count: int | None = None, twice: bool = False) -> None:
+    """Edit metadata.yaml as a broken tool (or a hand) would."""
+    import yaml
+
+    meta = bag / "metadata.yaml"
+    doc = yaml.safe_load(meta.read_text())
+    info = doc["rosbag2_bagfile_information"]
+    if duration is not None:
+        info["duration"]["nanoseconds"] = duration
+    if count is not None:
+        info["topics_with_message_count"][0]["message_count"] = count
+    if twice:
+        info["relative_file_paths"] *= 2
+    meta.write_text(yaml.safe_dump(doc))
+
+
+@pytest.mark.parametrize("kind", ["mcap", "sqlite3"])
+@pytest.mark.parametrize("lie, claim", [
+    ({"duration": 900_000_000_000_000_000}, "duration 900000000.000 s, the storage's messages span 2.900 s"),
+    ({"duration": -5_000_000_000}, "duration -5.000 s, the storage's messages span 2.900 s"),
+    ({"count": 7}, "/cam/image_raw: message_count 7, the storage holds 30"),
+    ({"twice": True}, "relative_file_paths lists bag."),
+])
+def test_the_storage_wins_over_metadata_yaml(tmp_path: Path, kind: str, lie: dict, claim: str) -> None:
+    path = _write(tmp_path / "bag", kind)
+    _lie(path, **lie)
+    bag = open_bag(path, {"rgb": TOPIC})
+    assert any(note.startswith(claim) for note in bag.metadata_notes), bag.metadata_notes
+    assert bag.duration_s == pytest.approx(2.9, abs=1e-3) and bag.frame_count("rgb") == 30
+    assert len(list(bag.frames("rgb"))) == 28  # every message once (two of them are bad)
+
+
+def test_a_huge_duration_replays_what_the_storage_holds(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    path = _write(tmp_path / "bag", "mcap")
+    _lie(path, duration=900_000_000_000_000_000)
+    status = main(["--replay", str(path), "--topics", f"rgb={TOPIC}", "--speed", "max",
+                   "--report", str(tmp_path / "r.json"), "--state-dir", str(tmp_path / "st")])
+    err = capsys.readouterr().err
+    assert status == 1  # the two bad messages; the replay itself ends with the storage's 2.9 s
+    assert "metadata.yaml: duration 900000000.000 s, the storage's messages span 2.900 s" in err
+    entry = json.loads((tmp_path / "r.json").read_text())["policies"]["learn"]
+    assert entry["replayed_s"] == pytest.approx(2.9, abs=0.2)
+
+
+def test_log_info_shows_the_storage_numbers_and_warns(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    path = _write(tmp_path / "bag", "sqlite3")
+    _lie(path, count=7, twice=True)
+    assert main(["log", "info", "--json", str(path)]) == 0
+    out, err = capsys.readouterr()
+    described = json.loads(out)
+    assert described["topics"][0]["messages"] == 30 and len(described["metadata_mismatch"]) == 2
+    assert "metadata.yaml: /cam/image_raw: message_count 7, the storage holds 30" in err

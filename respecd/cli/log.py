@@ -41,6 +41,9 @@ def main(args: argparse.Namespace) -> int:
     if is_bag(args.log):
         description = describe_bag(args.log)
         _print(json.dumps(description, indent=2) if args.json else render_bag(description))
+        for note in description["metadata_mismatch"]:
+            print(f"respecd: warning: {args.log}: metadata.yaml: {note}; the storage's numbers are shown",
+                  file=sys.stderr)
         return 0
     session = open_log(args.log, verify=True, warn=False)
     description = describe(session)
@@ -75,7 +78,7 @@ def describe_bag(path: str) -> dict[str, Any]:
     """A robot's bag: its topics, and the sensors ``--replay`` would take from them."""
     from respecd.record.rosbag_in import open_bag
 
-    bag = open_bag(path, None)
+    bag = open_bag(path, None, warn=False)
     duration = bag.duration_s
     return {
         "file": str(bag.path),
@@ -87,6 +90,7 @@ def describe_bag(path: str) -> dict[str, Any]:
         "topics": [{"topic": c.topic, "type": c.schema, "messages": c.count, "rate_hz": _rate(c.count, duration)}
                    for c in sorted(bag.channels.values(), key=lambda c: c.topic)],
         "guessed_topics": bag.topic_map,
+        "metadata_mismatch": bag.metadata_notes,  # metadata.yaml's numbers the storage disproved
     }
 
 

@@ -15,8 +15,11 @@ from respecd import filekind, pathkind
 from respecd.errors import InputError
 from respecd.filekind import ROS1_MAGIC
 
+TIME_SLACK_NS = 1_000_000  # metadata.yaml times within 1 ms of the storage's are the same times
+
 
 def lone_storage(path: Path) -> bool:
+    """A ROS 2 .mcap without the metadata.yaml of a rosbag2 folder beside it."""
     return path.suffix == ".mcap" and not (path.parent / "metadata.yaml").exists()
 
 
@@ -32,16 +35,60 @@ ROS1_EXPECTED = f"expected a ROS 1 bag, which starts with {ROS1_MAGIC!r} ({ROS2_
 METADATA_MAX_BYTES = 16 * 2**20
 
 
-def check_layout(p: Path) -> None:
+def check_layout(p: Path) -> dict[str, Any] | None:
     """What rosbags would trip over with a message of its own (a UnicodeDecodeError for a
     binary header, "'int' object is not subscriptable" for a metadata.yaml of the wrong
-    shape), said in our words: the file, the field or byte offset, and what was expected."""
+    shape), said in our words: the file, the field or byte offset, and what was expected.
+    A rosbag2's ``rosbag2_bagfile_information`` (checked); None for a ROS 1 bag or a lone .mcap."""
     if lone_storage(p):
-        return  # no metadata.yaml to check: rosbags reads the MCAP's own summary
+        return None  # no metadata.yaml to check: rosbags reads the MCAP's own summary
     if p.is_dir() or p.suffix in (".mcap", ".db3"):
-        _check_metadata(bag_root(p) / "metadata.yaml")
-    else:
-        _check_ros1(p)
+        return _check_metadata(bag_root(p) / "metadata.yaml")
+    _check_ros1(p)
+    return None
+
+
+def storage_sources(p: Path, info: dict[str, Any] | None) -> tuple[list[Path], list[str]]:
+    """What rosbags is to read, and what metadata.yaml claimed wrongly about it. A rosbag2's
+    storage files are read each once and on their own, so that counts and times come from the
+    storage's own indexes: metadata.yaml's numbers are only a claim (a huge duration made a
+    replay run forever, a count of 7 replayed 7 of 30 frames, a file listed twice replayed
+    every message twice). A compressed rosbag2 (rare) is read through its folder."""
+    if info is None:
+        return [p], []
+    root = bag_root(p)
+    if str(info.get("compression_mode") or "").lower() not in ("", "none"):
+        return [root], []
+    files: list[Path] = []
+    notes = []
+    for name in info["relative_file_paths"]:
+        path = root / PurePath(name).name
+        if path in files:
+            notes.append(f"relative_file_paths lists {PurePath(name).name} more than once (read once)")
+        else:
+            files.append(path)
+    return files, notes
+
+
+def metadata_mismatches(info: dict[str, Any], start_ns: int, end_ns: int, total: int,
+                        counts: dict[str, int]) -> list[str]:
+    """Where metadata.yaml's numbers disagree with the storage's (``end_ns`` as rosbags gives it:
+    one past the last message)."""
+    span = end_ns - 1 - start_ns if total else 0
+    claims = []
+    duration = info["duration"]["nanoseconds"]
+    if abs(duration - span) > TIME_SLACK_NS:
+        claims.append(f"duration {duration / 1e9:.3f} s, the storage's messages span {span / 1e9:.3f} s")
+    started = info["starting_time"]["nanoseconds_since_epoch"]
+    if total and abs(started - start_ns) > TIME_SLACK_NS:
+        claims.append(f"starting_time {started} ns, the storage's first message is at {start_ns} ns")
+    if info["message_count"] != total:
+        claims.append(f"message_count {info['message_count']}, the storage holds {total}")
+    for entry in info["topics_with_message_count"]:
+        topic, claimed = entry["topic_metadata"]["name"], entry["message_count"]
+        if claimed != counts.get(topic, 0):
+            claims.append(f"{topic}: message_count {claimed}, the storage holds {counts.get(topic, 0)}")
+    return claims
 
 
 def _check_ros1(p: Path) -> None:
@@ -103,12 +150,12 @@ _KIND = {int: "an integer", str: "a text", list: "a list", dict: "a mapping"}
 _TAGS = {int: "tag:yaml.org,2002:int", str: "tag:yaml.org,2002:str"}
 
 
-def _check_metadata(meta: Path) -> None:
+def _check_metadata(meta: Path) -> dict[str, Any] | None:
     """A rosbag2's metadata.yaml, field by field: FILE:LINE: field: expected ..., got ..."""
     import yaml
 
     if not meta.exists():
-        return  # rosbags says which file is missing
+        return None  # rosbags says which file is missing
     try:
         with pathkind.open_regular(meta, "a rosbag2 metadata.yaml") as handle:
             data = handle.read(METADATA_MAX_BYTES + 1)
@@ -136,6 +183,8 @@ def _check_metadata(meta: Path) -> None:
         _expect(meta, topic, where, dict)
         entry = _field(meta, topic, where, _R2_TOPIC)
         _field(meta, entry["topic_metadata"], (*where, "topic_metadata"), _R2_TOPIC_META)
+    loaded = yaml.load(data, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))  # noqa: S506 - a safe loader
+    return dict(loaded["rosbag2_bagfile_information"])
 
 
 def _check_storage_file(meta: Path, node: Any, i: int) -> None:

@@ -33,7 +33,7 @@ import structlog
 from respecd import filekind, pathkind
 from respecd.errors import InputError
 from respecd.messages import Frame, Modality
-from respecd.record.bag_layout import bag_root, check_layout
+from respecd.record.bag_layout import bag_root, check_layout, metadata_mismatches, storage_sources
 from respecd.record.reader import ChannelInfo, Demux
 from respecd.record.ros_image import image_pixels
 
@@ -106,6 +106,8 @@ class BagLog:
     truncated: bool = False
     metadata: dict[str, dict[str, str]] = field(default_factory=dict)
     skipped: dict[str, dict[int, str]] = field(default_factory=dict)  # topic -> index in the topic -> why
+    sources: list[Path] = field(default_factory=list)  # what rosbags reads (storage_sources)
+    metadata_notes: list[str] = field(default_factory=list)  # metadata.yaml's claims the storage disproved
     _demux: Demux | None = field(default=None, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
@@ -138,7 +140,7 @@ class BagLog:
         from rosbags.highlevel import AnyReader
 
         wanted = set(topics)
-        with AnyReader([bag_root(self.path)]) as reader:
+        with AnyReader(self.sources or [bag_root(self.path)]) as reader:
             store = reader.typestore
             deserialize = store.deserialize_cdr if reader.is2 else store.deserialize_ros1
             connections = [c for c in reader.connections if c.topic in wanted]
@@ -188,17 +190,19 @@ class BagLog:
                     for topic, entries in self.skipped.items()}
 
 
-def open_bag(path: str | Path, topics: dict[str, str] | None) -> BagLog:
-    """Describe a bag; check the topic map against it (InputError naming what is wrong)."""
+def open_bag(path: str | Path, topics: dict[str, str] | None, warn: bool = True) -> BagLog:
+    """Describe a bag; check the topic map against it (InputError naming what is wrong). What
+    metadata.yaml claimed wrongly is in ``metadata_notes`` (logged unless ``warn`` is off)."""
     from rosbags.highlevel import AnyReader
 
     p = Path(path)
     if not p.exists():
         raise InputError(f"{p}: no such file or directory (expected a rosbag2 directory or a ROS 1 .bag)")
-    check_layout(p)
-    bag = BagLog(path=p, topic_map={})
+    metadata = check_layout(p)
+    sources, notes = storage_sources(p, metadata)
+    bag = BagLog(path=p, topic_map={}, sources=sources)
     try:
-        with AnyReader([bag_root(p)]) as reader:
+        with AnyReader(sources) as reader:
             for c in reader.connections:
                 info = bag.channels.setdefault(c.topic, ChannelInfo(c.topic, c.msgtype, {}, 0, c.msgtype))
                 info.count += c.msgcount
@@ -209,6 +213,13 @@ def open_bag(path: str | Path, topics: dict[str, str] | None) -> BagLog:
         raise
     except Exception as err:  # rosbags' own errors: unreadable metadata, unknown storage, bad chunk
         raise InputError(f"{p}: cannot read as a ROS bag: {err}") from err
+    if metadata is not None and sources != [bag_root(p)]:
+        counts = {topic: c.count for topic, c in bag.channels.items()}
+        notes += metadata_mismatches(metadata, bag.start_ns, bag.end_ns, bag.message_count, counts)
+    bag.metadata_notes = notes
+    for note in notes if warn else ():
+        log.warning("bag.metadata_mismatch", path=str(bag_root(p) / "metadata.yaml"), claim=note,
+                    used="the storage's own numbers")
     bag.size = sum(f.stat().st_size for f in ([p] if p.is_file() else p.iterdir()) if f.is_file())
     bag.topic_map = dict(topics) if topics else guessed
     _check_topics(bag)

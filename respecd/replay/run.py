@@ -111,6 +111,8 @@ def open_source(path: str | Path, topics: str | None) -> Any:
     if not bag.topic_map:
         raise InputError(f"{path}: no sensor_msgs Image/CompressedImage/PointCloud2/Imu topic to replay "
                          f"(topics: {', '.join(f'{t} [{c.schema}]' for t, c in sorted(bag.channels.items()))})")
+    for note in bag.metadata_notes:
+        print(f"respecd: warning: {path}: metadata.yaml: {note}; replaying what the storage holds", file=sys.stderr)
     if not topics:
         guess = ",".join(f"{k}={v}" for k, v in bag.topic_map.items())
         print(f"respecd: --topics not given; guessed from message types: --topics {guess}", file=sys.stderr)
