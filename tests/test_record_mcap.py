@@ -225,7 +225,7 @@ async def test_cut_log_reads_up_to_the_last_complete_chunk(tmp_path: Path) -> No
 
 
 async def test_rotation_by_size_gives_complete_segments(tmp_path: Path) -> None:
-    recorder, _ = await _record(tmp_path, rotate_mib=0.2, flush_s=0.1)
+    recorder, _ = await _record(tmp_path, rotate_mib=1, flush_s=0.1)  # 1 MiB: the smallest segment
     assert len(recorder.paths) >= 2
     assert recorder.paths[1].name.endswith("-001.mcap")
     total = 0

@@ -152,22 +152,74 @@ def test_retention_deletes_the_oldest_session_first(tmp_path: Path) -> None:
     template = str(tmp_path / "rec-{time}.mcap")
     assert [r.path for r in recordings(template)] == [*oldest, *middle, *newest, open_path]
     with capture_logs() as logs:
-        deleted = Retention(template, 650_000, 0, False).enforce(open_path, 100_000)
+        deleted = Retention(template, 650_000, 0, False).enforce([open_path], open_path, 100_000)
     assert [d.path for d in deleted] == [*oldest, *middle]  # 1.3 MB -> 0.4 MB, oldest session first
     assert newest[0].exists() and open_path.exists() and (tmp_path / "notes.txt").exists()
     assert [e["reason"] for e in logs] == ["max_bytes"] * 3
 
 
 def test_a_long_recording_stays_under_max_bytes(tmp_path: Path) -> None:
-    _fake_session(tmp_path, "20261130T080000", [400_000])
-    segments = _writer(tmp_path, rotate_mib=0.2, max_bytes=700_000)
-    for i in range(1500):  # ~1.8 MB offered
+    _backdate(_fake_session(tmp_path, "20261130T080000", [400_000]))
+    segments = _writer(tmp_path, rotate_mib=1, max_bytes=2 * MIB + 200_000)
+    for i in range(4000):  # ~4.8 MB offered
         segments.put(_message(i), i * 1_000_000, i * 0.01)
     segments.close()
     on_disk = recordings(str(tmp_path / "rec-{time}.mcap"))
-    assert sum(r.size for r in on_disk) <= 700_000 + 0.2 * MIB + 64_000  # the cap, plus the open segment
+    assert sum(r.size for r in on_disk) <= 2 * MIB + 200_000 + MIB + 64_000  # the cap, plus the open segment
     assert all(r.session == "20261201T080000" for r in on_disk)  # the older session went first
     assert on_disk[-1].path == segments.paths[-1] and segments.state == "recording"
+
+
+def _backdate(paths: list[Path], hours: float = 24.0) -> list[Path]:
+    """Files last written ``hours`` before this session (what retention takes as proof they are older)."""
+    when = STARTED.timestamp() - hours * 3600
+    for path in paths:
+        os.utime(path, (when, when))
+    return paths
+
+
+def test_retention_never_takes_the_live_session_for_a_name_dated_later(tmp_path: Path) -> None:
+    """Three older files named as if recorded in 2099 sorted after the live session: with max_bytes set,
+    21 of the live session's 22 segments were deleted and the 2099 files kept."""
+    future = _backdate(_fake_session(tmp_path, "20991231T000000", [700_000, 700_000, 700_000]))
+    segments = _writer(tmp_path, rotate_mib=1, max_bytes=4 * MIB)  # room for this session, not all of both
+    for i in range(2500):  # ~3 MB: three segments of this session
+        segments.put(_message(i), i * 1_000_000, i * 0.01)
+    segments.close()
+    assert all(path.exists() for path in segments.paths)  # none of the live session's segments
+    assert sum(not p.exists() for p in future) >= 1 and len(segments.paths) >= 3
+
+
+def test_retention_leaves_files_written_since_the_session_started(tmp_path: Path) -> None:
+    """A file matching the template but written after this session began is not provably an earlier
+    session's (another daemon, a copy in progress): counted, never deleted."""
+    template = str(tmp_path / "rec-{time}.mcap")
+    older = _backdate(_fake_session(tmp_path, "20261130T080000", [300_000]))
+    stranger = _fake_session(tmp_path, "20200101T000000", [300_000])  # an old name, written just now
+    mine = tmp_path / "rec-20261201T080000.mcap"
+    mine.write_bytes(b"\0" * 100_000)
+    retention = Retention(template, 200_000, 0, False, started=STARTED.timestamp())
+    with capture_logs() as logs:
+        deleted = retention.enforce([mine], mine, 100_000)
+    assert [d.path for d in deleted] == older and stranger[0].exists() and mine.exists()
+    assert [e["event"] for e in logs] == ["record.pruned", "record.over_max_bytes"]
+
+
+@pytest.mark.parametrize("settings, problem", [
+    ({"max_bytes": 1}, "max_bytes 1 is less than two segments of rotate_mib 512 MiB"),
+    ({"rotate_mib": 0.001}, "greater than or equal to 1"),
+])
+def test_nonsensical_sizes_are_profile_errors(tmp_path: Path, settings: dict, problem: str) -> None:
+    from respecd.config import read_profile
+    from respecd.errors import ConfigError
+
+    profile = yaml.safe_load((REPO / "configs" / "sim-rover.yaml").read_text())
+    profile["recording"] = settings
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(profile))
+    with pytest.raises(ConfigError) as info:
+        read_profile(path)
+    assert any(problem in line and "recording" in line for line in info.value.problems), info.value.problems
 
 
 @pytest.mark.e2e

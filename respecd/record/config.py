@@ -9,9 +9,11 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, model_validator
 
 from respecd.sensors import StrictModel
+
+MIB = 1 << 20
 
 Channel = Literal["frames", "radar_raw", "percepts", "decisions", "configs", "sync"]
 ALL_CHANNELS: tuple[Channel, ...] = ("frames", "radar_raw", "percepts", "decisions", "configs", "sync")
@@ -42,7 +44,8 @@ class RecordingConfig(StrictModel):
         "mcap library's level 3) the smaller.",
     )
     rotate_mib: float = Field(
-        512.0, gt=0, le=1 << 20, description="Start a new file once the current one reaches this size (MiB)."
+        512.0, ge=1, le=1 << 20, description="Start a new file once the current one reaches this size (MiB, "
+        "at least 1: a segment is a whole MCAP file with the profile and its own summary).",
     )
     rotate_s: float = Field(
         0.0, ge=0, description="Start a new file after this many seconds of session time (0: no time rotation)."
@@ -81,8 +84,10 @@ class RecordingConfig(StrictModel):
         "and recording pauses, resuming in a new file once there is room (0: write until the disk refuses).",
     )
     max_bytes: int = Field(
-        0, ge=0, description="Most bytes of recordings (every session this path names) kept on disk; past it the "
-        "oldest session's files are deleted first, never the file being written (0: no limit).",
+        0, ge=0, description="Most bytes of recordings (every session this path names) kept on disk; past it "
+        "earlier sessions' files are deleted first (oldest written first, only files last written before this "
+        "session started), then this session's finished segments, never the file being written (0: no limit; "
+        "else at least two segments, 2 x rotate_mib MiB).",
     )
     delete_oldest: bool = Field(
         False, description="Below min_free_mib, delete the oldest recordings (oldest session first) before pausing.",
@@ -97,3 +102,11 @@ class RecordingConfig(StrictModel):
         "this much more. 0: wake per message.",
     )
 
+    @model_validator(mode="after")
+    def _room_for_two_segments(self) -> RecordingConfig:
+        """A cap below two segments would delete every finished one at once, or hold nothing at all."""
+        least = int(2 * self.rotate_mib * MIB)
+        if self.max_bytes and self.max_bytes < least:
+            raise ValueError(f"max_bytes {self.max_bytes} is less than two segments of rotate_mib {self.rotate_mib:g} "
+                             f"MiB ({least} bytes): use 0 (no limit), at least {least}, or a smaller rotate_mib")
+        return self

@@ -134,7 +134,8 @@ class SegmentWriter:
         self._floor = int(config.min_free_mib * MIB)
         self._resume_at = int(self._floor * RESUME_MARGIN) + config.chunk_size_kib * 1024 + MIB
         self._directory = segment_path(config.path, started, 0).parent
-        self._retention = Retention(config.path, int(config.max_bytes), self._floor, config.delete_oldest)
+        self._retention = Retention(config.path, int(config.max_bytes), self._floor, config.delete_oldest,
+                                    started=started.timestamp())
         self._retry_s = RETRY_S
         self._next_retry = 0.0
 
@@ -303,7 +304,7 @@ class SegmentWriter:
             log.warning("record.paused", **fields)
 
     def _prune(self, open_path: Path | None, open_size: int) -> None:
-        for gone in self._retention.enforce(open_path, open_size):
+        for gone in self._retention.enforce(self.paths, open_path, open_size):
             if gone.path in self.paths:  # an earlier segment of this session
                 self._finished_bytes -= gone.size
 
