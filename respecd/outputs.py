@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import errno
 import os
+import stat
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -132,7 +133,7 @@ def recording_problem(template: str) -> str | None:
 
     now = datetime.now(timezone.utc)
     first = segment_path(template, now, 0)
-    problem = output_file_problem(first, make_parents=True, example="respecd-{time}.mcap")
+    problem = _not_a_new_file(first) or output_file_problem(first, make_parents=True, example="respecd-{time}.mcap")
     session = session_stamp(now) if "{time}" in template else ""
     taken = [r.path for r in recordings(template) if r.session == session]
     if problem is None and taken:
@@ -141,3 +142,22 @@ def recording_problem(template: str) -> str | None:
     if problem and str(first) != template:  # name the template as given, then the file it makes now
         problem = f"{template} (now {first}){problem[len(str(first)):]}"
     return problem
+
+
+def _not_a_new_file(path: Path) -> str | None:
+    """A name no file system takes (NUL, a name over 255 bytes; the same for a later segment's longer
+    name), or a device or FIFO already there: a recording writes new regular files (``/dev/null``
+    recorded nothing, and said nothing)."""
+    from respecd import pathkind
+
+    longest = path.with_name(f"{path.stem}-99999{path.suffix}")  # a days-long session's segment names
+    problem = pathkind.name_problem(path) or pathkind.name_problem(longest)
+    if problem:
+        return problem
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        return None
+    if stat.S_ISREG(mode) or stat.S_ISDIR(mode):
+        return None  # a file already there, or a directory: said below as for any output
+    return f"{path}: is {pathkind.describe(mode)}; a recording is written to new regular files"

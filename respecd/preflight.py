@@ -182,6 +182,9 @@ def _qtable(loaded: LoadedProfile, state_dir: Path | None, policy: str | None) -
     def named(problem: str) -> str:  # the profile's table_file, else the state directory's own name for it
         if controller.table_file:
             return _at(loaded, ("controller", "table_file"), problem)
+        if pathkind.name_problem(path):  # named after the profile: the name is what to change
+            return _at(loaded, ("name",), f"{problem}; the Q-table is named after the profile: shorten name "
+                       "or set controller.table_file")
         return f"--state-dir: {problem}"
 
     problems = [named(p) for p in [pathkind.problem(path, EXPECTED_SHORT)] if p]

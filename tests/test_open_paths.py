@@ -120,3 +120,38 @@ def test_log_info_refuses_a_bag_whose_metadata_names_a_fifo(tmp_path: Path) -> N
     for name in ("x.bag", "x.mcap"):
         result = _respecd("log", "info", str(tmp_path / name))
         assert result.returncode == 2 and f"{tmp_path / name}: is a FIFO" in result.stderr
+
+
+def _profile(tmp_path: Path, **changes: object) -> Path:
+    profile = yaml.safe_load((REPO / "configs" / "sim-rover.yaml").read_text())
+    profile["perception"] = {"enabled": False}
+    profile.update(changes)
+    path = tmp_path / "p.yaml"
+    path.write_text(yaml.safe_dump(profile))
+    return path
+
+
+@pytest.mark.parametrize("changes, line, said", [
+    ({"recording": {"enabled": True, "path": "rec/" + "x" * 300 + ".mcap"}}, "recording.path",
+     "a file name of 305 bytes, longer than the 255"),
+    ({"recording": {"enabled": True, "path": "rec/a\x00b.mcap"}}, "recording.path", "contains a NUL character"),
+    ({"name": "n" * 5000}, "name", "the Q-table is named after the profile: shorten name"),
+])
+def test_check_config_and_the_daemon_refuse_paths_no_file_system_takes(tmp_path: Path, changes: dict, line: str,
+                                                                       said: str) -> None:
+    """A 300-character recording.path name was a check-config traceback; a NUL in it or a 5,000-character
+    name passed check-config and then was a traceback in the daemon."""
+    profile = _profile(tmp_path, **changes)
+    for argv in (["check-config", str(profile)], ["--profile", str(profile), "--duration", "3"]):
+        result = _respecd(*argv, "--state-dir", str(tmp_path / "st"))
+        assert result.returncode == 2 and "Traceback" not in result.stderr, result.stderr[-2000:]
+        assert re.search(rf"p\.yaml:\d+: {line}: .*{re.escape(said)}", result.stderr), result.stderr[-2000:]
+
+
+def test_record_refuses_a_device_or_a_fifo(tmp_path: Path) -> None:
+    """--record /dev/null or a FIFO recorded nothing, with exit 0."""
+    os.mkfifo(tmp_path / "f.mcap")
+    for target, kind in (("/dev/null", "a character device"), (str(tmp_path / "f.mcap"), "a FIFO (named pipe)")):
+        result = _respecd("--record", target, "--duration", "3", "--state-dir", str(tmp_path / "st"))
+        assert result.returncode == 2, result.stderr[-2000:]
+        assert f"--record {target}: is {kind}; a recording is written to new regular files" in result.stderr
