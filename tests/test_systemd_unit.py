@@ -37,7 +37,7 @@ def test_unit_has_the_contract_settings():
         "ProtectSystem=strict",
         "ProtectHome=yes",
         "PrivateTmp=yes",
-        "SupplementaryGroups=dialout plugdev video",
+        "SupplementaryGroups=plugdev video",
         "RestartPreventExitStatus=2",
     ):
         assert setting in unit, setting
@@ -120,3 +120,17 @@ def test_the_descriptor_limit_holds_the_live_views_largest_cap():
 
     limit = int(_settings((SYSTEMD / "respecd.service").read_text())["LimitNOFILE"][-1])
     assert limit >= MAX_CLIENTS * FDS_PER_CLIENT + FDS_SPARE
+
+
+def test_serial_access_is_the_radars_ports_only_and_recordings_age_by_the_profile():
+    """The udev rules plus dialout opened every serial port on the robot to the service; the tmpfiles
+    age rule (30d) deleted recordings whatever the profile's retention said."""
+    unit = _settings((SYSTEMD / "respecd.service").read_text())
+    assert "dialout" not in unit["SupplementaryGroups"][-1].split()
+    assert "dialout" not in (SYSTEMD / "respecd.sysusers").read_text().split()
+    rules = [line for line in (SYSTEMD / "99-respecd.rules").read_text().splitlines()
+             if line.startswith("SUBSYSTEM==\"tty\"")]
+    assert rules and all('GROUP="respecd"' in line and "SYMLINK+=\"respecd-radar-" in line for line in rules)
+    entries = [line.split() for line in (SYSTEMD / "respecd.tmpfiles").read_text().splitlines()
+               if line and not line.startswith("#")]
+    assert entries and all(len(entry) < 6 or entry[5] == "-" for entry in entries)
