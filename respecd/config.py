@@ -9,6 +9,7 @@ because a robotics engineer editing YAML on a rover needs the line, not a traceb
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal, Union
@@ -178,10 +179,19 @@ def _format_problem(resolved: Resolved, error: Any) -> str:
 
 
 def _quoted_number_hint(text: str) -> str:
+    """Why a number became text: quoted, or a form YAML 1.1 does not read as a number (1e3 needs a
+    dot and a signed exponent there: 1.0e+3)."""
     try:
-        float(text)
+        value = float(text)
     except ValueError:
         return ""
-    return " (write numbers without quotes)"
+    import yaml
+
+    if not isinstance(yaml.safe_load(text), str):
+        return " (write numbers without quotes)"
+    if not math.isfinite(value):
+        return f" (YAML reads {text} as text, not a number)"
+    return (f" (YAML reads {text} as text, not a number: write {value:g}, or an exponent with a dot and a "
+            "sign such as 1.0e+3)")
 
 

@@ -104,6 +104,9 @@ def test_duplicate_keys_name_both_lines(tmp_path: Path) -> None:
         ("yes", "expected a number, got True (YAML reads yes/no/on/off/true/false as booleans)"),
         ('"30"', "expected a number, got the text '30' (write numbers without quotes)"),
         ("true", "expected a number, got True (YAML reads yes/no/on/off/true/false as booleans)"),
+        # unquoted, but YAML 1.1 reads an exponent without a dot as text: "without quotes" was no help
+        ("1e1", "expected a number, got the text '1e1' (YAML reads 1e1 as text, not a number: write 10, or an "
+                "exponent with a dot and a sign such as 1.0e+3)"),
     ],
 )
 def test_numbers_must_be_numbers(tmp_path: Path, value: str, message: str) -> None:

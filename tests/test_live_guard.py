@@ -23,7 +23,7 @@ from respecd.errors import ConfigError
 from respecd.messages import Frame
 from respecd.record.codec import Message
 from respecd.record.config import RecordingConfig
-from respecd.record.live import LiveView
+from respecd.record.live import LiveView, url
 from respecd.record.live_config import DEFAULT_ORIGINS, LiveConfig, origin_allowed
 from respecd.record.recorder import Recorder
 
@@ -216,6 +216,10 @@ def test_the_fan_out_runs_on_the_live_views_thread_and_drops_its_oldest() -> Non
         live.close()
     assert {name for name, _ in seen} == {"respecd-live"}
     assert live.dropped >= 20 - 8 - 1 and seen[-1][1] == 19  # the newest kept, the oldest dropped
+
+
+def test_urls_bracket_ipv6_hosts() -> None:
+    assert url("::", 8765) == "ws://[::]:8765" and url("0.0.0.0", 1) == "ws://0.0.0.0:1"
 
 
 def test_a_descriptor_limit_below_the_cap_is_a_config_error() -> None:

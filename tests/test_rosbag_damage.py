@@ -130,3 +130,13 @@ def test_log_info_shows_the_storage_numbers_and_warns(tmp_path: Path, capsys: py
     described = json.loads(out)
     assert described["topics"][0]["messages"] == 30 and len(described["metadata_mismatch"]) == 2
     assert "metadata.yaml: /cam/image_raw: message_count 7, the storage holds 30" in err
+
+
+def test_a_sensor_mapped_twice_is_an_error() -> None:
+    """--topics rgb=/a,rgb=/b was accepted, the last one silently winning."""
+    from respecd.errors import InputError
+    from respecd.record.rosbag_in import parse_topics
+
+    with pytest.raises(InputError, match=r"--topics: rgb is given twice \(rgb=/a and rgb=/b\)"):
+        parse_topics("rgb=/a,rgb=/b")
+    assert parse_topics("rgb=/a,thermal=/b") == {"rgb": "/a", "thermal": "/b"}

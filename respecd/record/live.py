@@ -55,6 +55,11 @@ def parse_address(text: str) -> tuple[str, int]:
     return host, port
 
 
+def url(host: str, port: int) -> str:
+    """``ws://HOST:PORT`` with an IPv6 host in brackets (``ws://[::]:8765``)."""
+    return f"ws://[{host}]:{port}" if ":" in host else f"ws://{host}:{port}"
+
+
 def ensure_descriptors(max_clients: int) -> None:
     """Raise the soft RLIMIT_NOFILE (up to the hard one) so ``max_clients`` viewers fit beside the
     rest of the daemon; ConfigError when the hard limit is too low (the unit's LimitNOFILE)."""
@@ -112,7 +117,7 @@ class LiveView:
             raise ConfigError(f"--foxglove {self.host}:{self.port}: cannot listen: {err.strerror or err}") from err
         self._thread = threading.Thread(target=self._run, name="respecd-live", daemon=True)
         self._thread.start()
-        log.info("live.serving", url=f"ws://{self.host}:{self.port}", max_clients=self.config.max_clients,
+        log.info("live.serving", url=url(self.host, self.port), max_clients=self.config.max_clients,
                  backlog=self.config.backlog, origins=self.config.allowed_origins)
         return self.port
 

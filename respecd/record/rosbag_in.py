@@ -88,6 +88,9 @@ def parse_topics(text: str | None, modalities: Iterable[str] = MODALITIES) -> di
             raise InputError(f"--topics: {item.strip()!r}: expected NAME=/topic, e.g. rgb=/camera/image_raw")
         if name not in modalities:
             raise InputError(f"--topics: {name!r}: expected one of {', '.join(modalities)}")
+        if name in mapping:
+            raise InputError(f"--topics: {name} is given twice ({name}={mapping[name]} and {name}={topic}); "
+                             "expected one topic per sensor")
         mapping[name] = topic
     return mapping
 
