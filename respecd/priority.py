@@ -17,16 +17,17 @@ import sys
 import threading
 
 WORKER_NICE = 10  # added to the process's nice value (CFS weight about a tenth of the loop's)
+VIEWER_NICE = 19  # the live view's threads: below the recorder, whose log must not pay for viewers
 
 
-def lower_thread_priority() -> None:
-    """Lower the calling thread's CPU priority by ``WORKER_NICE`` (Linux; quietly a no-op
-    elsewhere or where it is refused). Use as a ThreadPoolExecutor ``initializer``."""
+def lower_thread_priority(step: int = WORKER_NICE) -> None:
+    """Lower the calling thread's CPU priority by ``step`` (Linux; quietly a no-op elsewhere or
+    where it is refused). Use as a ThreadPoolExecutor ``initializer``."""
     if sys.platform != "linux":
         return
     tid = threading.get_native_id()
     try:
         current = os.getpriority(os.PRIO_PROCESS, tid)
-        os.setpriority(os.PRIO_PROCESS, tid, min(19, current + WORKER_NICE))
+        os.setpriority(os.PRIO_PROCESS, tid, min(19, current + step))
     except OSError:
         pass

@@ -27,7 +27,7 @@ from typing import Any
 import structlog
 
 from respecd.errors import ConfigError
-from respecd.priority import lower_thread_priority
+from respecd.priority import VIEWER_NICE, lower_thread_priority
 from respecd.record.codec import Message
 from respecd.record.live_clients import ClientLog
 from respecd.record.live_config import LiveConfig
@@ -136,7 +136,7 @@ class LiveView:
 
     def _run(self) -> None:
         """The live view's thread: every queued message to every viewer subscribed to it."""
-        lower_thread_priority()  # viewers are the least urgent work of the daemon
+        lower_thread_priority(VIEWER_NICE)  # viewers are the least urgent work of the daemon
         while True:
             with self._cond:
                 while not self._queue and not self._closing:

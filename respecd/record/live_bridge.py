@@ -28,6 +28,7 @@ from typing import Any
 
 import structlog
 
+from respecd.priority import VIEWER_NICE, lower_thread_priority
 from respecd.record.live_clients import Refusals, header_value, peer_name
 from respecd.record.live_config import LiveConfig, origin_allowed
 from respecd.timeouts import within
@@ -88,6 +89,7 @@ class SubprotocolBridge:
         return self.port
 
     def _run(self) -> None:
+        lower_thread_priority(VIEWER_NICE)  # copying bytes to viewers yields to the loop and the recorder
         loop = self._loop = asyncio.new_event_loop()
         asyncio.set_event_loop(loop)
         try:
