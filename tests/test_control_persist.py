@@ -228,6 +228,7 @@ def test_bad_arrays_are_named_with_the_cell(tmp_path: Path, arrays: dict, named:
     assert named in str(info.value)
 
 
+@pytest.mark.e2e
 def test_a_table_with_negative_visits_no_longer_crashes_the_daemon(tmp_path: Path) -> None:
     """visits -1 made the controller divide by zero at its first update, on every restart."""
     import subprocess

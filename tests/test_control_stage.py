@@ -152,6 +152,7 @@ async def test_exploit_with_an_empty_state_dir_uses_the_shipped_table(tmp_path: 
     assert not list(tmp_path.glob("*.npz"))  # exploit never writes a table
 
 
+@pytest.mark.slow
 async def test_a_state_directory_that_fails_is_one_error_a_status_flag_and_a_summary(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A state directory that refused every save logged qtable_save_failed once a second (40 in 40 s)."""

@@ -222,6 +222,7 @@ def test_urls_bracket_ipv6_hosts() -> None:
     assert url("::", 8765) == "ws://[::]:8765" and url("0.0.0.0", 1) == "ws://0.0.0.0:1"
 
 
+@pytest.mark.e2e
 def test_a_descriptor_limit_below_the_cap_is_a_config_error() -> None:
     code = ("import resource; from respecd.record.live import ensure_descriptors; "
             "resource.setrlimit(resource.RLIMIT_NOFILE, (300, 400)); "

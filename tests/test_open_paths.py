@@ -85,6 +85,7 @@ def test_a_fifo_or_a_directory_as_the_lock_file_is_an_input_error(tmp_path: Path
         pass
 
 
+@pytest.mark.e2e
 def test_the_daemon_refuses_a_fifo_q_table_or_profile_with_exit_2(tmp_path: Path) -> None:
     state = tmp_path / "st"
     state.mkdir()
@@ -99,6 +100,7 @@ def test_the_daemon_refuses_a_fifo_q_table_or_profile_with_exit_2(tmp_path: Path
     assert result.returncode == 2 and f"{tmp_path}/p.yaml: is a FIFO (named pipe)" in result.stderr
 
 
+@pytest.mark.e2e
 def test_log_info_refuses_a_bag_whose_metadata_names_a_fifo(tmp_path: Path) -> None:
     bag = tmp_path / "bag"
     bag.mkdir()
@@ -131,6 +133,7 @@ def _profile(tmp_path: Path, **changes: object) -> Path:
     return path
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("changes, line, said", [
     ({"recording": {"enabled": True, "path": "rec/" + "x" * 300 + ".mcap"}}, "recording.path",
      "a file name of 305 bytes, longer than the 255"),
@@ -148,6 +151,7 @@ def test_check_config_and_the_daemon_refuse_paths_no_file_system_takes(tmp_path:
         assert re.search(rf"p\.yaml:\d+: {line}: .*{re.escape(said)}", result.stderr), result.stderr[-2000:]
 
 
+@pytest.mark.e2e
 def test_record_refuses_a_device_or_a_fifo(tmp_path: Path) -> None:
     """--record /dev/null or a FIFO recorded nothing, with exit 0."""
     os.mkfifo(tmp_path / "f.mcap")

@@ -67,6 +67,7 @@ def test_a_bad_message_costs_that_message_only(tmp_path: Path, kind: str) -> Non
     assert report["count"] == 2 and "Serde" in report["first"][0]["why"] and "ValueError" in report["first"][1]["why"]
 
 
+@pytest.mark.slow
 def test_a_replay_reports_skipped_messages_and_exits_1(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     path = _write(tmp_path / "bag", "mcap")
     status = main(["--replay", str(path), "--topics", f"rgb={TOPIC}", "--speed", "max",
@@ -110,6 +111,7 @@ def test_the_storage_wins_over_metadata_yaml(tmp_path: Path, kind: str, lie: dic
     assert len(list(bag.frames("rgb"))) == 28  # every message once (two of them are bad)
 
 
+@pytest.mark.slow
 def test_a_huge_duration_replays_what_the_storage_holds(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     path = _write(tmp_path / "bag", "mcap")
     _lie(path, duration=900_000_000_000_000_000)
