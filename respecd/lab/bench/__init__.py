@@ -19,4 +19,5 @@ BENCHES: dict[str, str] = {
     "live": "respecd.lab.bench.live",
     "soak": "respecd.lab.bench.soak",
     "peers": "respecd.lab.bench.peers",
+    "attacks": "respecd.lab.bench.attacks",
 }
