@@ -289,3 +289,27 @@ def _refused_not_set_aside(state: Path, path: Path) -> None:
         problems = check_profile(profile, state)
     assert path.exists() and not list(state.glob("*.corrupt-*"))
     assert f"--state-dir: {path}: cannot read the Q-table (permission denied); fix its permissions" in problems
+
+
+def test_a_bit_flipped_in_a_compressed_array_is_damage_not_a_crash(tmp_path: Path) -> None:
+    """`respecd bench attacks` found it: a flipped bit inside the deflated q array was a zlib.error out of
+    load_into (not a zipfile error), so the daemon crashed at start instead of setting the table aside."""
+    path = tmp_path / "q.npz"
+    table = QTable(40, 30, Learning(init="zero"), seed=1)
+    for k in range(300):
+        table.update(k % 40, k % 30, float(k % 7) - 3.0, (k + 1) % 40)
+    save_table(path, table, LAYOUT, {})
+    data = path.read_bytes()
+    start = data.index(b"q.npy") + 40  # inside the q member's deflated bytes
+    crashes = 0
+    for offset in range(start, start + 200, 5):
+        spoiled = bytearray(data)
+        spoiled[offset] ^= 0x10
+        path.write_bytes(bytes(spoiled))
+        try:
+            load_into(path, QTable(40, 30, Learning(init="zero")), LAYOUT)
+        except Exception:  # noqa: BLE001 - what the test counts
+            crashes += 1
+        for aside in tmp_path.glob("q.npz.*"):
+            aside.unlink()
+    assert crashes == 0

@@ -110,6 +110,8 @@ def read_table(path: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
                                  f"(first bytes {head[:8]!r}); {EXPECTED}")
             f.seek(0)
             q, visits, raw = _arrays(path, np.load(f, allow_pickle=False))
+    except InputError:
+        raise
     except (zipfile.BadZipFile, EOFError) as err:
         raise InputError(f"{path}: damaged or truncated .npz archive ({err}); {EXPECTED}") from err
     except OSError as err:
@@ -117,6 +119,9 @@ def read_table(path: Path) -> tuple[dict[str, Any], np.ndarray, np.ndarray]:
     except ValueError as err:
         detail = "it holds pickled Python objects" if "pickle" in str(err) else str(err)
         raise InputError(f"{path}: not a respecd Q-table: {detail}; {EXPECTED}") from err
+    except Exception as err:  # noqa: BLE001 - damage surfaces as zlib's or numpy's header parser's own errors
+        # (zlib.error, SyntaxError, tokenize.TokenError): damage, whichever the library raises
+        raise InputError(f"{path}: damaged .npz archive ({type(err).__name__}: {err}); {EXPECTED}") from err
     try:
         meta = json.loads(raw.tobytes().decode())
     except (UnicodeDecodeError, json.JSONDecodeError) as err:
