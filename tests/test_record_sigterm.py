@@ -56,6 +56,7 @@ def test_a_terminal_hangup_stops_like_sigterm(tmp_path: Path) -> None:
     def own_session() -> None:  # the daemon leads a session whose controlling terminal is the pty, as in ssh
         os.setsid()
         os.close(os.open(terminal, os.O_RDWR))
+        signal.signal(signal.SIGHUP, signal.SIG_DFL)  # as sshd starts it (a runner under nohup ignores SIGHUP)
 
     shown = bytearray()
 
@@ -118,3 +119,39 @@ def test_a_reader_that_leaves_the_pipe_does_not_stop_the_daemon(tmp_path: Path) 
                 proc.kill()
     assert status == 0
     assert not open_log(log).truncated
+
+
+def _daemon(tmp_path: Path, ignore: tuple[int, ...] = ()) -> subprocess.Popen[str]:
+    """The console script with the usual signal dispositions (a terminal, systemd), less ``ignore``."""
+
+    def dispositions() -> None:
+        for sig in (signal.SIGINT, signal.SIGHUP, signal.SIGTERM):
+            signal.signal(sig, signal.SIG_IGN if sig in ignore else signal.SIG_DFL)
+
+    return subprocess.Popen([sys.executable, "-m", "respecd.cli", "--duration", "30", "--state-dir",
+                             str(tmp_path / "st"), "--log-format", "json"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, preexec_fn=dispositions)  # noqa: PLW1509
+
+
+def test_a_sigint_while_the_command_line_is_built_stops_cleanly(tmp_path: Path) -> None:
+    """`respecd bench attacks` found it: a SIGINT in the first second (while the command line's modules are
+    imported) was a KeyboardInterrupt traceback."""
+    daemon = _daemon(tmp_path)
+    time.sleep(0.3)
+    daemon.send_signal(signal.SIGINT)
+    out, err = daemon.communicate(timeout=60)
+    assert daemon.returncode == 0 and "Traceback" not in err, err[-2000:]
+
+
+def test_a_signal_started_ignored_stays_ignored(tmp_path: Path) -> None:
+    """`nohup respecd ...`: SIGHUP ignored at start was taken as a stop request once the handlers were in,
+    a second later, so the daemon still stopped when the session that started it logged out."""
+    daemon = _daemon(tmp_path, ignore=(signal.SIGHUP,))
+    for delay in (0.3, 4.0):
+        time.sleep(delay)
+        daemon.send_signal(signal.SIGHUP)
+    time.sleep(1.0)
+    assert daemon.poll() is None, "SIGHUP stopped a daemon started with it ignored"
+    daemon.send_signal(signal.SIGTERM)
+    out, err = daemon.communicate(timeout=60)
+    assert daemon.returncode == 0 and "Traceback" not in err, err[-2000:]

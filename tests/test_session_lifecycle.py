@@ -74,7 +74,10 @@ def _wait_for(proc: subprocess.Popen[str], event: str, limit_s: float = 60) -> N
 def test_a_signal_while_the_detector_loads_stops_the_daemon_at_once(tmp_path: Path, sig: int) -> None:
     argv = [*RESPECD, "--log-format", "json", "--state-dir", str(tmp_path), "--duration", "30"]
     with subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                          env={**os.environ, "PYTHONUNBUFFERED": "1"}) as proc:
+                          env={**os.environ, "PYTHONUNBUFFERED": "1"},
+                          preexec_fn=lambda: signal.signal(sig, signal.SIG_DFL)) as proc:  # noqa: PLW1509
+        # SIG_DFL: as a terminal or systemd starts it; a runner in the background ignores SIGINT, and the
+        # daemon keeps a signal it was started with ignored
         try:
             _wait_for(proc, "detector_loading")
             sent = time.monotonic()

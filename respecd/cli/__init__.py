@@ -55,8 +55,14 @@ def main(argv: list[str] | None = None) -> int:
 
 def entry() -> None:
     """The console script (and ``python -m respecd.cli``): like ``main``, but the daemon and a
-    replay end the process without the interpreter's teardown (``run.exit_now``)."""
+    replay end the process without the interpreter's teardown (``run.exit_now``). A stop signal
+    is noted from the first line, while the command line is built (``signals.note_early``)."""
+    from respecd.signals import note_early, release_early
+
+    note_early()
     args = build_parser().parse_args()
+    if args.command is not None:
+        release_early()
     status = _run(args)
     if args.command is None:
         from respecd.cli.run import exit_now
