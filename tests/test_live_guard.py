@@ -197,7 +197,7 @@ async def _drain(ws) -> None:
 
 
 def test_the_fan_out_runs_on_the_live_views_thread_and_drops_its_oldest() -> None:
-    live = LiveView("127.0.0.1", 0, config=LiveConfig(queue=8))
+    live = LiveView("127.0.0.1", 0, config=LiveConfig(queue_mib=8 * 100_000 / (1 << 20)))  # room for 8 messages
     live.open()
     release, seen = threading.Event(), []
 
@@ -208,7 +208,7 @@ def test_the_fan_out_runs_on_the_live_views_thread_and_drops_its_oldest() -> Non
     live._log = slow_log  # type: ignore[method-assign]
     try:
         for ns in range(20):
-            live.put(Message("/x", "respecd.Percept", b"{}", {}), ns, 0.0)  # returns at once, whatever viewers do
+            live.put(Message("/x", "respecd.Percept", b"x" * 100_000, {}), ns, 0.0)  # at once, whatever viewers do
         time.sleep(0.2)
         release.set()
         time.sleep(0.2)

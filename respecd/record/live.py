@@ -6,7 +6,7 @@ A sink of the recorder's worker thread, so a message is encoded once for the log
 live view alike, and only while somebody is watching: a channel is advertised with its first
 message, and after that a sensor frame is encoded only while a client is subscribed to it.
 Handing a message to every viewer (the SDK copies it into each one's queue) is the live
-view's own thread's work: ``put`` only queues it (``live.queue``, oldest dropped and counted),
+view's own thread's work: ``put`` only queues it (``live.queue_mib``, oldest dropped, counted),
 so viewers cost neither the recording nor the control loop. Bounded everywhere: that queue,
 the server's ``live.backlog`` messages per client (oldest dropped for a slow one), and the
 public port's guard (``live_bridge``: handshake timeout, connection cap, stalled viewers
@@ -85,6 +85,8 @@ class LiveView:
         self._bridge: Any = None
         self._clients = ClientLog()
         self._queue: deque[tuple[Message, int]] = deque()
+        self._queued = 0  # payload bytes in _queue
+        self._budget = int(self.config.queue_mib * (1 << 20))
         self._cond = threading.Condition()
         self._thread: threading.Thread | None = None
         self._closing = False
@@ -128,10 +130,12 @@ class LiveView:
     def put(self, message: Message, log_ns: int, t: float) -> None:
         """Queue ``message`` for the viewers (the recorder's thread: returns at once)."""
         with self._cond:
-            if len(self._queue) >= self.config.queue:
-                self._queue.popleft()
-                self.dropped += 1
             self._queue.append((message, log_ns))
+            self._queued += len(message.payload)
+            while self._queued > self._budget and len(self._queue) > 1:  # bounded in bytes: a frame is 5-600 kB
+                old, _ = self._queue.popleft()
+                self._queued -= len(old.payload)
+                self.dropped += 1
             self._cond.notify()
 
     def _run(self) -> None:
@@ -144,6 +148,7 @@ class LiveView:
                 if self._closing:
                     return
                 message, log_ns = self._queue.popleft()
+                self._queued -= len(message.payload)
             try:
                 self._log(message, log_ns)
             except Exception:  # noqa: BLE001 - thread boundary: one bad message must not end the view

@@ -38,9 +38,10 @@ class LiveConfig(StrictModel):
         16, ge=4, le=1024, description="Messages queued per viewer before its oldest are dropped (about 0.5 s "
         "of the simulated rover's channels; each sensor frame is up to a few hundred kB).",
     )
-    queue: int = Field(
-        64, ge=8, le=65536, description="Messages waiting for the live view's own thread (which hands each to "
-        "every viewer) before the oldest is dropped: viewers never cost the recording or the control loop.",
+    queue_mib: float = Field(
+        8.0, gt=0, le=1024, description="MiB of messages waiting for the live view's own thread (which hands each to "
+        "every viewer) before the oldest are dropped: viewers never cost the recording or the control loop, and a "
+        "starved view holds no more than this.",
     )
     allowed_origins: list[str] = Field(
         list(DEFAULT_ORIGINS), description="Browser origins (scheme://host[:port]; without a port any port) "
