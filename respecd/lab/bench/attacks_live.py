@@ -204,7 +204,7 @@ def _stalled(ctx: Context) -> list[str | None]:
         r0, viewers = daemon.rss_mb(), []
         for _ in range(30):
             ws = connect(f"ws://127.0.0.1:{daemon.port}", subprotocols=["foxglove.websocket.v1"],  # type: ignore[list-item]
-                         max_queue=1, max_size=None, open_timeout=10, ping_interval=None)
+                         max_queue=1, max_size=None, open_timeout=10, ping_interval=None, close_timeout=1)
             _subscribe_all(ws)
             viewers.append((ws, peer(ws.socket)))
         time.sleep(30)
