@@ -55,11 +55,12 @@ class Pipeline:
         self.perception: PerceptionStage | None = None
         self.controller: ControllerStage | None = None
 
-    def make_perception(self) -> PerceptionStage:
+    def make_perception(self, exports: Path | None = None) -> PerceptionStage:
+        """``exports``: where another runtime's exported graphs are cached (``FusionDetector.load``)."""
         from respecd.perception.stage import PerceptionStage, calibration_from_profile
 
         self.perception = PerceptionStage(self.profile.perception, calibration_from_profile(self.profile),
-                                          self.clock, latency_model=self.latency_model)
+                                          self.clock, latency_model=self.latency_model, exports=exports)
         self.perception.on_inference.extend(self.hooks.inference)
         return self.perception
 

@@ -37,9 +37,7 @@ def check_profile(loaded: LoadedProfile, state_dir: Path | None = None, policy: 
         problems += _recording(loaded)
     profile = loaded.model
     if profile.perception.enabled:
-        reason = device_problem(profile.perception.device)
-        if reason:
-            problems.append(_at(loaded, ("perception", "device"), reason))
+        problems += _perception_device(loaded)
     return problems + _learning_state_dir(loaded, state_dir, policy, create_state_dir)
 
 
@@ -83,6 +81,18 @@ def _recording(loaded: LoadedProfile) -> list[str]:
         return []
     problem = recording_problem(recording.path)
     return [_at(loaded, ("recording", "path"), problem)] if problem else []
+
+
+def _perception_device(loaded: LoadedProfile) -> list[str]:
+    """The device (runtime torch), or the runtime with its device and precision, this machine cannot run."""
+    perception = loaded.model.perception
+    if perception.runtime == "torch":
+        reason = device_problem(perception.device)
+        return [_at(loaded, ("perception", "device"), reason)] if reason else []
+    from respecd.perception import runtimes
+
+    reason = runtimes.problem(perception)
+    return [_at(loaded, ("perception", "runtime"), reason)] if reason else []
 
 
 def device_problem(device: str) -> str | None:

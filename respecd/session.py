@@ -54,6 +54,7 @@ class Session:
         tables: Any = None,
         observers: Iterable[Observer] = (),
         latency_model: Any = None,
+        exports: Path | None = None,
     ) -> None:
         """No I/O here: the pipeline is built (drivers' constructors do none), nothing runs.
         ``tables``: control.stage.TableFiles; default: the state directory's table."""
@@ -62,6 +63,7 @@ class Session:
         self.policy = policy
         self.state_dir = state_dir
         self.tables = tables
+        self.exports = exports or (state_dir / "exported" if state_dir else None)  # PerceptionStage's exports
         self.hooks = Hooks()
         self.pipeline = Pipeline(profile, clock, context or DriverContext(), self.hooks, latency_model)
         self.observers: list[Observer] = []
@@ -119,7 +121,7 @@ class Session:
         """Detector and controller first: a bad checkpoint or an empty action space is a
         start-up error (exit 2) before anything else runs."""
         if self.profile.perception.enabled:
-            await self._unless_stopped(self.pipeline.make_perception().load(), stop)
+            await self._unless_stopped(self.pipeline.make_perception(self.exports).load(), stop)
         if self.profile.controller.enabled:
             controller = self.pipeline.make_controller(self.policy, self.state_dir, self.tables)
             self._closers.append(("controller", controller.close))

@@ -32,6 +32,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
             "`log export LOG --to rosbag2 DIR`"),
     "train-policy": ("respecd.cli.train_policy", "train the Q-table on the simulated scenarios (cached outcomes)"),
     "policy": ("respecd.cli.policy", "print a learned Q-table as a policy: `policy show FILE`"),
+    "export": ("respecd.cli.export", "write a checkpoint's net as ONNX graphs: `export CKPT --to onnx OUT`"),
 }
 
 

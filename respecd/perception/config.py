@@ -96,7 +96,22 @@ class PerceptionConfig(StrictModel):
         "builtin:sim-rover",
         description="Checkpoint path, or 'builtin:NAME' for a checkpoint shipped inside the package.",
     )
-    device: str = Field("cpu", description="Torch device: cpu, cuda, cuda:0.")
+    device: str = Field(
+        "cpu",
+        description="Where the detector runs. runtime torch: a torch device (cpu, cuda, cuda:N); onnxruntime: cpu, "
+        "cuda, cuda:N (its CUDA provider), tensorrt, tensorrt:N (its TensorRT provider); openvino: cpu, gpu, gpu:N.",
+    )
+    runtime: Literal["torch", "onnxruntime", "openvino"] = Field(
+        "torch",
+        description="What runs the network: torch, or the checkpoint exported to ONNX (once, cached in the state "
+        "directory by checkpoint hash) and run by ONNX Runtime (pip install 'respecd[onnx]') or OpenVINO "
+        "('respecd[openvino]'). Same detections and contributions in f32; see docs/PERFORMANCE.md.",
+    )
+    precision: Literal["f32", "bf16", "f16"] = Field(
+        "f32",
+        description="Inference precision: f32 everywhere; bf16 with runtime openvino on a CPU that has it; f16 with "
+        "openvino on a GPU or onnxruntime on tensorrt. Lower precision moves mAP: docs/PERFORMANCE.md.",
+    )
     score_threshold: float = Field(0.25, ge=0, le=1, description="Minimum confidence kept after NMS.")
     iou_threshold: float = Field(0.5, gt=0, le=1, description="NMS IoU above which the weaker box is suppressed.")
     max_detections: int = Field(50, ge=1, le=1000, description="Detections kept per frame after NMS.")
@@ -124,7 +139,8 @@ class PerceptionConfig(StrictModel):
         1,
         ge=1,
         le=64,
-        description="Torch intra-op threads for inference; 1 leaves the second core to the event loop and drivers.",
+        description="Intra-op threads for inference (torch's, or the runtime's); 1 leaves the second core to the "
+        "event loop and drivers.",
     )
     thermal_range_k: tuple[float, float] = Field(
         (273.0, 313.0), description="Kelvin mapped to 0..1 for thermal frames in kelvin (meta units 'K')."
@@ -140,6 +156,19 @@ class PerceptionConfig(StrictModel):
     radar_max_range_m: float = Field(15.0, gt=0, description="Radar points farther than this are not projected.")
     depth_max_m: float = Field(10.0, gt=0, description="Depth mapped to 0..1 over 0..this many metres.")
     model: ModelSpec = Field(ModelSpec(), description="Network shape; must match the checkpoint.")
+
+    @model_validator(mode="after")
+    def _precision_needs_a_runtime(self) -> PerceptionConfig:
+        if self.precision != "f32" and self.runtime == "torch":
+            raise ValueError(f"precision {self.precision} needs runtime onnxruntime or openvino (torch runs f32)")
+        return self
+
+    @model_validator(mode="after")
+    def _gradient_needs_torch(self) -> PerceptionConfig:
+        if self.attribution_method == "gradient" and self.runtime != "torch":
+            raise ValueError(f"attribution_method gradient needs runtime torch: an exported {self.runtime} graph "
+                             "has no gradients (ablation runs through any runtime)")
+        return self
 
     @model_validator(mode="after")
     def _ordered_thermal_range(self) -> PerceptionConfig:

@@ -39,6 +39,9 @@ from respecd.errors import InputError
 from respecd.perception import darknet
 from respecd.perception.calibration import ScoreCalibration, calibrated
 from respecd.perception.config import ModelSpec
+from respecd.perception.parts import Call, Engine, Part, names
+
+Taps = tuple[torch.Tensor, ...]  # one backbone's features at the head's inputs, in tap order
 
 
 def cfg_text(backbone: str) -> tuple[str, str]:
@@ -89,16 +92,17 @@ class DarknetFusionNet(nn.Module):
             aux_text, aux_source = cfg_text(str(spec.aux_backbone))
             aux_sections = darknet.parse_cfg(aux_text, aux_source)
             aux_layout = darknet.DarknetNet(aux_sections, 3, aux_source, keep=range(0))
-        self.aux_split, self.aux_taps = aux_layout.head_split()
-        if [layout.layers[t].stride for t in self.taps] != [aux_layout.layers[t].stride for t in self.aux_taps]:
+        self.aux_split, self.aux_taps_at = aux_layout.head_split()
+        if [layout.layers[t].stride for t in self.taps] != [aux_layout.layers[t].stride for t in self.aux_taps_at]:
             raise InputError(f"aux_backbone {spec.aux_backbone}: its feature strides differ from {spec.backbone}'s")
         n_aux = len(spec.aux_modalities)
         self.rgb = darknet.DarknetNet(sections, 3, source, keep=range(self.split))
         self.aux = darknet.DarknetNet(aux_sections, 2 * n_aux, aux_source, keep=range(self.aux_split))
         self.head = darknet.DarknetNet(sections, 3, source, keep=range(self.split, len(layout.layers)))
         self.fuse = nn.ModuleList(Fuse(layout.layers[t].channels, aux_layout.layers[a].channels)
-                                  for t, a in zip(self.taps, self.aux_taps, strict=True))
-        self._empty: dict[tuple[str, int, int, str], dict[int, torch.Tensor]] = {}  # f0 and a0 per input size
+                                  for t, a in zip(self.taps, self.aux_taps_at, strict=True))
+        self._empty: dict[tuple[str, int, int, str], Taps] = {}  # f0 and a0 per input size
+        self.engine: Engine | None = None  # set by FusionDetector.load for runtime onnxruntime / openvino
         self.yolo_specs = self.head.yolo_specs
 
     def forward(self, x: torch.Tensor, presence: torch.Tensor | None = None) -> list[torch.Tensor]:
@@ -106,38 +110,53 @@ class DarknetFusionNet(nn.Module):
 
         Returns the raw yolo maps (B, anchors x (5 + nc), H/s, W/s), one per [yolo] layer.
         """
-        if presence is None:
-            presence = x.new_ones(x.shape[0], x.shape[1] - 3)
         return self.fuse_taps(self.encode_rgb(x[:, :3]), self.encode_aux(x[:, 3:], presence))
 
-    def encode_rgb(self, rgb: torch.Tensor) -> dict[int, torch.Tensor]:
-        """(B, 3, H, W) -> backbone 1's features at the fusion taps (a black image's: cached, no pass)."""
+    def encode_rgb(self, rgb: torch.Tensor) -> Taps:
+        """(B, 3, H, W) -> backbone 1's features at the head's taps; a black image (RGB off) from the cache."""
         b, _, h, w = rgb.shape
         if bool((rgb == 0).all()) and not self.rgb.training:
-            return {t: f.expand(b, -1, -1, -1) for t, f in self.black_features(h, w, rgb).items()}
-        store: dict[int, torch.Tensor] = {}
-        self.rgb.run(rgb, 0, self.split, store)
-        return {t: store[t] for t in self.taps}
+            return tuple(f.expand(b, -1, -1, -1) for f in self.black_features(h, w, rgb))  # RGB off: no pass
+        return self.rgb_taps(rgb)
 
-    def encode_aux(self, planes: torch.Tensor, presence: torch.Tensor) -> dict[int, torch.Tensor]:
-        """(B, A, H, W) aux planes and (B, A) flags -> ``g * (aux - a0)`` at backbone 2's taps (module doc)."""
-        b, _, h, w = planes.shape
-        aux = self.aux_features(planes, presence)
+    def encode_aux(self, planes: torch.Tensor, presence: torch.Tensor | None = None) -> Taps:
+        """(B, A, H, W) aux planes -> the evidence backbone 2 adds at each tap: its features less those of an
+        empty input (``a0``), zero where every aux sensor is off; at backbone 2's resolution."""
+        b, a, h, w = planes.shape
+        if presence is None:
+            presence = planes.new_ones(b, a)
+        aux = self.aux_taps(self.aux_input(planes, presence))
         empty = self.empty_features(h, w, planes)
-        gate = (presence.amax(1) > 0).to(planes.dtype)[:, None, None, None] if presence.shape[1] \
-            else planes.new_zeros(b, 1, 1, 1)
-        return {a: gate * (aux[a] - empty[a]) for a in self.aux_taps}
+        gate = (presence.amax(1) > 0).to(planes.dtype)[:, None, None, None] if a else planes.new_zeros(b, 1, 1, 1)
+        return tuple(gate * (f - f0) for f, f0 in zip(aux, empty, strict=True))
 
-    def fuse_taps(self, rgb: dict[int, torch.Tensor], evidence: dict[int, torch.Tensor]) -> list[torch.Tensor]:
-        """Both backbones' tap features (``encode_rgb``, ``encode_aux``) -> 1x1 fusion -> head: the raw yolo maps."""
+    def fuse_taps(self, rgb: Taps, evidence: Taps) -> list[torch.Tensor]:
+        """Each tap's 1x1 fusion of backbone 1's features and the evidence (resized to them), then the head."""
+        if self.engine is not None:
+            return list(self.engine("fuse", *rgb, *evidence))
         store: dict[int, torch.Tensor] = {}
-        for t, a, fuse in zip(self.taps, self.aux_taps, self.fuse, strict=True):
-            aux = evidence[a]
-            if aux.shape[-2:] != rgb[t].shape[-2:]:
-                aux = F.interpolate(aux, size=rgb[t].shape[-2:], mode="bilinear", align_corners=False)
-            store[t] = fuse(rgb[t], aux)
+        for t, r, e, fuse in zip(self.taps, rgb, evidence, self.fuse, strict=True):
+            if e.shape[-2:] != r.shape[-2:]:
+                e = F.interpolate(e, size=r.shape[-2:], mode="bilinear", align_corners=False)
+            store[t] = fuse(r, e)
         self.head.run(None, self.split, len(self.head.layers), store)
         return [store[i] for i in self.head.yolo_indices]
+
+    def rgb_taps(self, rgb: torch.Tensor) -> Taps:
+        """Backbone 1 (a part: ``engine`` runs it when set)."""
+        if self.engine is not None:
+            return self.engine("rgb", rgb)
+        store: dict[int, torch.Tensor] = {}
+        self.rgb.run(rgb, 0, self.split, store)
+        return tuple(store[t] for t in self.taps)
+
+    def aux_taps(self, z: torch.Tensor) -> Taps:
+        """Backbone 2 on its input (``aux_input``), at its taps (a part, like ``rgb_taps``)."""
+        if self.engine is not None:
+            return self.engine("aux", z)
+        store: dict[int, torch.Tensor] = {}
+        self.aux.run(z, 0, self.aux_split, store)
+        return tuple(store[t] for t in self.aux_taps_at)
 
     def aux_input(self, planes: torch.Tensor, presence: torch.Tensor) -> torch.Tensor:
         """Backbone 2's input: the aux planes and one presence plane each, at ``aux_scale``."""
@@ -153,33 +172,36 @@ class DarknetFusionNet(nn.Module):
         s = self.spec.aux_scale
         return (h, w) if s == 1.0 else (max(1, round(h * s)), max(1, round(w * s)))
 
-    def aux_features(self, planes: torch.Tensor, presence: torch.Tensor) -> dict[int, torch.Tensor]:
-        store: dict[int, torch.Tensor] = {}
-        self.aux.run(self.aux_input(planes, presence), 0, self.aux_split, store)
-        return store
-
-    def black_features(self, h: int, w: int, like: torch.Tensor) -> dict[int, torch.Tensor]:
+    def black_features(self, h: int, w: int, like: torch.Tensor) -> Taps:
         """Backbone 1's tap features of a black h x w image (``f0``), cached while backbone 1 cannot change."""
-        def run() -> dict[int, torch.Tensor]:
-            store: dict[int, torch.Tensor] = {}
-            self.rgb.run(like.new_zeros(1, 3, h, w), 0, self.split, store)
-            return {t: store[t] for t in self.taps}
-        return self._constant(("rgb", h, w, str(like.device)), self.rgb, run)
+        return self._constant(("rgb", h, w, str(like.device)), self.rgb,
+                              lambda: self.rgb_taps(like.new_zeros(1, 3, h, w)))
 
-    def empty_features(self, h: int, w: int, like: torch.Tensor) -> dict[int, torch.Tensor]:
+    def empty_features(self, h: int, w: int, like: torch.Tensor) -> Taps:
         """``a0`` at each aux tap for an h x w input (see module doc), at backbone 2's resolution."""
         if self.same_backbone:
             return self.black_features(*self.aux_size(h, w), like)
 
-        def run() -> dict[int, torch.Tensor]:
+        def run() -> Taps:
             n = len(self.spec.aux_modalities)
-            store: dict[int, torch.Tensor] = {}
-            self.aux.run(self.aux_input(like.new_zeros(1, n, h, w), like.new_zeros(1, n)), 0, self.aux_split, store)
-            return {t: store[t] for t in self.aux_taps}
+            return self.aux_taps(self.aux_input(like.new_zeros(1, n, h, w), like.new_zeros(1, n)))
         return self._constant(("aux", h, w, str(like.device)), self.aux, run)
 
-    def _constant(self, key: tuple[str, int, int, str], part: nn.Module, run: Callable[[], dict[int, torch.Tensor]]
-                  ) -> dict[int, torch.Tensor]:
+    def export_parts(self, x: torch.Tensor, presence: torch.Tensor) -> list[Part]:
+        """The parts a runtime runs (``engine``), with example inputs from ``x`` (1, C, H, W): each backbone
+        (backbone 2 on its prepared input) and fusion + head. The caches and the gate stay in Python."""
+        with torch.no_grad():
+            z = self.aux_input(x[:, 3:], presence)
+            rgb, evidence = self.rgb_taps(x[:, :3]), self.encode_aux(x[:, 3:], presence)
+        n, heads = len(self.taps), len(self.head.yolo_indices)
+        return [
+            Part("rgb", Call(self, lambda m, r: m.rgb_taps(r)), (x[:, :3],), ("rgb",), names("rgb", n)),
+            Part("aux", Call(self, lambda m, a: m.aux_taps(a)), (z,), ("aux",), names("aux", n)),
+            Part("fuse", Call(self, lambda m, *f: m.fuse_taps(f[:n], f[n:])), (*rgb, *evidence),
+                 (*names("rgb", n), *names("aux", n)), names("yolo", heads)),
+        ]
+
+    def _constant(self, key: tuple[str, int, int, str], part: nn.Module, run: Callable[[], Taps]) -> Taps:
         """``run()`` without gradients in eval mode (a one-image batch has no statistics of its own); kept
         while ``part`` is frozen and in eval mode."""
         frozen = not part.training and not any(p.requires_grad for p in part.parameters())

@@ -11,11 +11,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import structlog
 import torch
 
+from respecd.errors import ConfigError
 from respecd.messages import Detection, Frame, Percept, conf_agg
 from respecd.perception import checkpoint, fold, split
 from respecd.perception.align import AlignedInput, Aligner
@@ -25,9 +27,12 @@ from respecd.perception.calibration import ScoreCalibration
 from respecd.perception.checkpoint import Net
 from respecd.perception.config import PerceptionConfig
 from respecd.perception.model import count_parameters
+from respecd.perception.parts import Engine
 from respecd.sensors import Calibration
 
 log = structlog.get_logger(__name__)
+
+EXPORTS = "exported"  # the state directory's folder of exported graphs (``export.cached``)
 
 
 @dataclass(frozen=True)
@@ -46,7 +51,7 @@ class FusionDetector:
     def __init__(self, model: Net, config: PerceptionConfig,
                  calibration: dict[str, Calibration | None] | None = None) -> None:
         self.config = config
-        self.device = torch.device(config.device)
+        self.device = self.torch_device(config)
         for p in model.parameters():  # attribution needs input gradients only
             p.requires_grad_(False)
         self.parameters = count_parameters(model)  # as trained (folding merges each batch norm into a conv)
@@ -58,14 +63,44 @@ class FusionDetector:
         self.scores = self.scene_scores()
 
     @classmethod
-    def load(cls, config: PerceptionConfig, calibration: dict[str, Calibration | None] | None = None) -> FusionDetector:
-        """Load ``config.weights`` (``builtin:NAME`` or a path); ConfigError if bad or mismatched."""
-        model, payload = checkpoint.load(config.weights, expected=config.model, map_location=config.device)
+    def load(cls, config: PerceptionConfig, calibration: dict[str, Calibration | None] | None = None,
+             exports: Path | None = None) -> FusionDetector:
+        """Load ``config.weights`` (``builtin:NAME`` or a path); ConfigError if bad or mismatched.
+
+        With ``runtime`` onnxruntime or openvino the net's parts run there, exported into ``exports``
+        (default: ``exported/`` in the default state directory) on first use."""
+        if config.runtime != "torch":
+            from respecd.perception import runtimes
+
+            reason = runtimes.problem(config)  # before loading or exporting anything
+            if reason is not None:
+                raise ConfigError(f"perception.runtime: {reason}")
+        device = str(cls.torch_device(config))
+        model, payload = checkpoint.load(config.weights, expected=config.model, map_location=device)
         if payload.get("score_calibration") is not None:  # confidences that mean the same at every RGB size
             model.score_calibration = ScoreCalibration.from_payload(payload["score_calibration"], config.weights)
         log.info("detector_loaded", weights=config.weights, channels=",".join(model.spec.channels),
                  trained_on=payload.get("data"))
-        return cls(model, config, calibration)
+        detector = cls(model, config, calibration)
+        if config.runtime != "torch":
+            detector.model.engine = detector.exported_engine(exports)
+        return detector
+
+    @staticmethod
+    def torch_device(config: PerceptionConfig) -> torch.device:
+        """Where torch holds the net: ``device`` for runtime torch; the CPU beside another runtime (its glue)."""
+        return torch.device(config.device if config.runtime == "torch" else "cpu")
+
+    def exported_engine(self, exports: Path | None) -> Engine:
+        """The net exported (cached by checkpoint hash) and loaded into the profile's runtime."""
+        from respecd.perception import export, runtimes
+
+        if exports is None:
+            from respecd.control.persist import resolve_state_dir
+
+            exports = resolve_state_dir(None) / EXPORTS
+        folder = export.cached(self.model, checkpoint.resolve(self.config.weights), exports, self.config.weights)
+        return runtimes.load(self.config, folder, export.read_manifest(folder, self.model.spec))
 
     def scene_scores(self) -> SceneScores:
         """A fresh held scene score for this detector's channels and attribution method."""
@@ -98,7 +133,9 @@ class FusionDetector:
 
     def run(self, aligned: AlignedInput, attribute_now: bool, t: float = 0.0) -> Inference:
         """Network + NMS (+ attribution) on an aligned input."""
-        x = fold.channels_last(torch.from_numpy(aligned.tensor).unsqueeze(0).to(self.device))  # (1, C, Hp, Wp)
+        x = torch.from_numpy(aligned.tensor).unsqueeze(0).to(self.device)  # (1, C, Hp, Wp)
+        if self.model.engine is None:
+            x = fold.channels_last(x)  # the layout for_inference put torch's net in
         presence = torch.from_numpy(aligned.presence).unsqueeze(0).to(self.device)  # (1, A)
         cfg = self.config
         if not attribute_now:

@@ -14,6 +14,7 @@ our own.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 
 import torch
 from torch import nn
@@ -21,10 +22,12 @@ from torch import nn
 from respecd.perception import fold
 from respecd.perception.calibration import ScoreCalibration, calibrated
 from respecd.perception.config import ModelSpec
+from respecd.perception.parts import Call, Engine, Part, names
 
 STRIDES = (8, 16, 32)  # P3, P4, P5
 HEAD_HALO = 2  # cells of context a head cell needs: each branch has two 3x3 convolutions before its 1x1
 Window = tuple[int, int, int, int]  # cells of one head level: first row, end row, first column, end column
+Branch = Callable[[int, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]  # (level, crop) -> box, class maps
 
 
 class Conv(nn.Module):
@@ -155,21 +158,28 @@ class Head(nn.Module):
         logits = [cls(f).flatten(2) for f, cls in zip(feats, self.cls, strict=True)]  # (B, nc, h*w)
         return torch.cat(logits, 2).transpose(1, 2)
 
-    def window(self, feats: list[torch.Tensor],
-               windows: list[Window]) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
+    def branches(self, level: int, crop: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """One level's box and class maps (B, 4*reg_max, h, w), (B, nc, h, w) of a feature map or a crop."""
+        return self.box[level](crop), self.cls[level](crop)
+
+    def window(self, feats: list[torch.Tensor] | tuple[torch.Tensor, ...], windows: list[Window],
+               branch: Branch | None = None) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
         """The head on each level's window only (a crop with HEAD_HALO cells of context): attribution needs
         the anchors near its targets, and the head is a quarter of a forward pass. Returns the raw output of
-        those cells, as ``forward`` orders it, and their (n,) indices among ``forward``'s N anchors."""
+        those cells, as ``forward`` orders it, and their (n,) indices among ``forward``'s N anchors.
+        ``branch``: what runs a level's branches on a crop (default ``branches``: these modules)."""
+        branch = branch or self.branches
         boxes, classes, index = [], [], []
         offset = 0
-        for f, box, cls, (r0, r1, c0, c1) in zip(feats, self.box, self.cls, windows, strict=True):
+        for level, (f, (r0, r1, c0, c1)) in enumerate(zip(feats, windows, strict=True)):
             h, w = f.shape[2:]
             if r1 > r0 and c1 > c0:
                 a0, b0 = max(0, r0 - HEAD_HALO), max(0, c0 - HEAD_HALO)
                 crop = f[:, :, a0 : min(h, r1 + HEAD_HALO), b0 : min(w, c1 + HEAD_HALO)]
                 inner = (..., slice(r0 - a0, r1 - a0), slice(c0 - b0, c1 - b0))
-                boxes.append(box(crop)[inner].flatten(2))
-                classes.append(cls(crop)[inner].flatten(2))
+                box, cls = branch(level, crop)
+                boxes.append(box[inner].flatten(2))
+                classes.append(cls[inner].flatten(2))
                 cells = torch.arange(r0, r1, device=f.device)[:, None] * w + torch.arange(c0, c1, device=f.device)
                 index.append(offset + cells.flatten())
             offset += h * w
@@ -190,13 +200,15 @@ class FusionNet(nn.Module):
     ``forward`` is ``fuse(encode_rgb(rgb), encode_aux(aux, presence))``; the parts are
     public so that attribution can switch one sensor off without re-running the other
     backbone (a sensor that is off feeds a zero plane, so its features depend only on the
-    input size).
+    input size). With ``engine`` set (an exported runtime, ``respecd.perception.runtimes``)
+    each part runs there instead of in torch: ``export_parts`` names them.
     """
 
     def __init__(self, spec: ModelSpec) -> None:
         super().__init__()
         self.spec = spec
         self.score_calibration: ScoreCalibration | None = None  # set by FusionDetector.load, never trained
+        self.engine: Engine | None = None  # set by FusionDetector.load for runtime onnxruntime / openvino
         n_aux = len(spec.aux_modalities)
         self.rgb = Backbone(3, spec.rgb_widths, spec.depths)
         self.aux = Backbone(2 * n_aux, spec.aux_widths, spec.depths)  # data planes + presence planes
@@ -220,6 +232,8 @@ class FusionNet(nn.Module):
 
     def encode_rgb(self, rgb: torch.Tensor) -> Features:
         """(B, 3, H, W) -> the RGB backbone's P3, P4, P5."""
+        if self.engine is not None:
+            return self.engine("rgb", rgb)  # type: ignore[return-value]
         return self.rgb(rgb)
 
     def encode_aux(self, aux: torch.Tensor, presence: torch.Tensor | None = None) -> Features:
@@ -227,20 +241,46 @@ class FusionNet(nn.Module):
         b, a, h, w = aux.shape
         if presence is None:
             presence = aux.new_ones(b, a)
+        if self.engine is not None:
+            return self.engine("aux", aux, presence.to(aux.dtype))  # type: ignore[return-value]
         planes = presence.to(aux.dtype)[:, :, None, None].expand(b, a, h, w)  # (B, A, H, W)
         return self.aux(torch.cat([aux, planes], 1))  # input (B, 2A, H, W)
 
     def fuse(self, rgb: Features, aux: Features) -> tuple[torch.Tensor, torch.Tensor]:
         """Concat per level -> neck -> head: the raw output (box logits, class logits)."""
+        if self.engine is not None:
+            return self.engine("fuse", *rgb, *aux)  # type: ignore[return-value]
         return self.head(self._neck(rgb, aux))
 
     def fuse_window(self, rgb: Features, aux: Features,
                     windows: list[Window]) -> tuple[tuple[torch.Tensor, torch.Tensor], torch.Tensor]:
         """``fuse`` with the head run on each level's window only (``Head.window``): raw output and anchor indices."""
-        return self.head.window(self._neck(rgb, aux), windows)
+        if self.engine is None:
+            return self.head.window(self._neck(rgb, aux), windows)
+        engine = self.engine
+        return self.head.window(engine("neck", *rgb, *aux), windows, lambda i, crop: engine(f"head{i}", crop))  # type: ignore[arg-type,return-value]
 
     def _neck(self, rgb: Features, aux: Features) -> list[torch.Tensor]:
         return self.neck(*(torch.cat([r, a], 1) for r, a in zip(rgb, aux, strict=True)))
+
+    def export_parts(self, x: torch.Tensor, presence: torch.Tensor) -> list[Part]:
+        """The parts a runtime runs (``engine``), with example inputs from ``x`` (1, C, H, W): the backbone per
+        modality, neck + head, the neck alone and each level's head branches (attribution's windows)."""
+        with torch.no_grad():
+            rgb, aux = self.rgb(x[:, :3]), self.encode_aux(x[:, 3:], presence)
+            feats = self._neck(rgb, aux)
+        features = (*names("rgb", 3), *names("aux", 3))
+        parts = [
+            Part("rgb", Call(self, lambda n, r: n.rgb(r)), (x[:, :3],), ("rgb",), names("rgb", 3)),
+            Part("aux", Call(self, lambda n, a, p: n.encode_aux(a, p)), (x[:, 3:], presence), ("aux", "presence"),
+                 names("aux", 3)),
+            Part("fuse", Call(self, lambda n, *f: n.fuse(f[:3], f[3:])), (*rgb, *aux), features, ("box", "cls")),
+            Part("neck", Call(self, lambda n, *f: n._neck(f[:3], f[3:])), (*rgb, *aux), features, names("p", 3)),
+        ]
+        for level, f in enumerate(feats):
+            parts.append(Part(f"head{level}", Call(self, lambda n, c, i=level: n.head.branches(i, c)), (f,),
+                              ("p",), ("box", "cls")))
+        return parts
 
     def decode(self, raw: tuple[torch.Tensor, torch.Tensor], input_hw: tuple[int, ...],
                anchors: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:

@@ -24,6 +24,7 @@ import asyncio
 import dataclasses
 from collections.abc import Callable, Mapping
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
 import structlog
@@ -70,10 +71,12 @@ class PerceptionStage:
     """
 
     def __init__(self, config: PerceptionConfig, calibration: Mapping[str, Calibration | None] | None,
-                 clock: Clock, detector: Any = None, latency_model: LatencyModel | None = None) -> None:
+                 clock: Clock, detector: Any = None, latency_model: LatencyModel | None = None,
+                 exports: Path | None = None) -> None:
         """``calibration``: per modality (``calibration_from_profile``); None when a detector is given."""
         self.config = config
         self.calibration = dict(calibration or {})
+        self.exports = exports  # where another runtime's exported graphs are cached (FusionDetector.load)
         self.clock = clock
         self.last: Percept | None = None
         self.processed = 0
@@ -185,13 +188,13 @@ class PerceptionStage:
                                    sufficiency=held.sufficiency)
 
     def _load(self) -> Any:
-        """Set torch's (process-wide) intra-op thread count and load the checkpoint."""
+        """Set torch's (process-wide) intra-op thread count and load the checkpoint (into its runtime)."""
         import torch
 
         from respecd.perception.detector import FusionDetector
 
         torch.set_num_threads(self.config.torch_threads)
-        return FusionDetector.load(self.config, self.calibration)
+        return FusionDetector.load(self.config, self.calibration, self.exports)
 
     def _has_new_input(self, bundle: Bundle) -> bool:
         """True when a detector input (RGB or an aux modality) brings a frame not yet seen.

@@ -11,10 +11,11 @@ clock, so it skips bundles as it did on the robot. The measured latency still go
 report's compute figures. ``--speed 1|2`` replays on a scaled wall clock with measured
 latencies, like a live run.
 
-A replay learns in memory: it never writes a state directory. ``state_dir`` only says where
-to read a table from (never renamed, whatever is wrong with it); ``save_table`` is the one
-place a learned table is written. SIGTERM/SIGINT end a replay early, with the report of what
-was replayed so far.
+A replay learns in memory: it never writes a state directory's table. ``state_dir`` only says
+where to read a table from (never renamed, whatever is wrong with it); ``save_table`` is the one
+place a learned table is written. (A profile with ``perception.runtime`` other than torch caches
+its exported graphs in the state directory's ``exported/``, as the daemon does.) SIGTERM/SIGINT
+end a replay early, with the report of what was replayed so far.
 """
 
 from __future__ import annotations
@@ -91,7 +92,8 @@ def replay(log_path: str | Path, *, config: str | Path | None = None, policy: st
     t0 = min(f.t for f in firsts.values())
     span = session.duration_s if duration is None else min(duration, session.duration_s)
     tables = _tables(profile, state_dir, save_table)
-    entry = _Replay(profile, session, speed, t0, span, seed, tables, observe).run(signals)
+    exports = Path(state_dir) / "exported" if state_dir else None  # another runtime's graphs: a cache, not state
+    entry = _Replay(profile, session, speed, t0, span, seed, tables, observe, exports).run(signals)
     entry.update(policy=profile.controller.policy, seed=seed, speed=speed, truncated=session.truncated)
     if hasattr(session, "skipped_report"):  # a ROS bag: its unreadable messages, per topic
         entry["skipped"] = session.skipped_report()
@@ -157,8 +159,9 @@ class _Replay:
     """One replay run: a session around replay drivers, its clock driven to the end."""
 
     def __init__(self, profile: Profile, session: SessionLog, speed: str, t0: float, duration: float, seed: int,
-                 tables: Any, observe: Any = None) -> None:
+                 tables: Any, observe: Any = None, exports: Path | None = None) -> None:
         self.profile = profile
+        self.exports = exports
         self.observe = observe
         self.session = session
         self.speed = speed
@@ -198,7 +201,7 @@ class _Replay:
         # without a detector the controller's features read every frame: decode them ahead, off the loop
         decode_ahead = not self.profile.perception.enabled and self.profile.controller.enabled
         context = DriverContext(seed=self.seed, replay=self.session, decode_ahead=decode_ahead)
-        session = Session(self.profile, clock, context,
+        session = Session(self.profile, clock, context, exports=self.exports,
                           tables=self.tables, observers=[self.collector], latency_model=model)
         session.hooks.inference.append(self.collector.measured)
         if self.observe is not None:

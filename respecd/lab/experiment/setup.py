@@ -39,11 +39,14 @@ def load_detector(profile: Profile, weights: str | None = None, random_init: boo
 
 
 def perception_identity(detector: Any, profile: Profile) -> dict[str, Any]:
-    """The perception settings that shape an outcome (not device or thread count)."""
+    """The perception settings that shape an outcome (not device, thread count or runtime: the runtimes give
+    the same outcomes in f32, so a cache stays valid; a lower precision is part of the identity)."""
     from respecd.perception.stage import calibration_from_profile
 
-    settings = detector.config.model_dump(mode="json", exclude={"device", "torch_threads", "weights",
-                                                                "attribution_every_s"})
+    same = {"device", "torch_threads", "weights", "attribution_every_s", "runtime"}
+    if detector.config.precision == "f32":
+        same.add("precision")
+    settings = detector.config.model_dump(mode="json", exclude=same)
     calibration = {k: (v.model_dump(mode="json") if v is not None else None)
                    for k, v in calibration_from_profile(profile).items()}
     identity = {"settings": settings, "calibration": calibration}
