@@ -119,3 +119,29 @@ def test_daemon_modules_need_not_have_the_lab_extra() -> None:
                  for line, name, guarded in imported_names(m.read_text(), str(m))
                  if name.split(".")[0] in LAB_EXTRA and not guarded]
     assert not offenders, "\n".join(offenders)
+
+
+RUNTIME_EXTRAS = ("onnxruntime", "openvino", "onnx")  # perception.runtime's extras: respecd[onnx], respecd[openvino]
+
+
+def test_only_the_runtime_back_ends_import_the_runtime_extras() -> None:
+    """The daemon on runtime torch never needs ONNX Runtime or OpenVINO: their imports live in the back-end
+    modules the registry imports when a profile names them (or behind an ImportError fallback)."""
+    back_ends = REPO / "respecd" / "perception" / "runtimes"
+    offenders = [f"{m.relative_to(REPO)}:{line}: imports {name}"
+                 for m in daemon_modules() if m.parent != back_ends
+                 for line, name, guarded in imported_names(m)
+                 if name.split(".")[0] in RUNTIME_EXTRAS and not guarded]
+    assert not offenders, "\n".join(offenders)
+
+
+def test_the_runtime_torch_daemon_imports_no_runtime_extra() -> None:
+    """Loading the shipped detector on runtime torch imports none of the extras (a fresh interpreter)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; from respecd.perception.config import PerceptionConfig; "
+            "from respecd.perception.detector import FusionDetector; FusionDetector.load(PerceptionConfig()); "
+            f"print(sorted(m for m in {RUNTIME_EXTRAS!r} if m in sys.modules))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, check=True)
+    assert done.stdout.strip().splitlines()[-1] == "[]"

@@ -126,3 +126,25 @@ def compare(reference: FusionDetector, exported: FusionDetector, inputs: list[tu
 
 def test_the_shipped_checkpoints_are_all_compared() -> None:
     assert {"builtin:sim-rover", "builtin:rgbt", "builtin:rgbt-hituav"} <= set(SHIPPED)
+
+
+@pytest.mark.parametrize("runtime", RUNTIMES)
+def test_the_inference_bench_times_the_runtime_beside_torch(runtime: str, tmp_path: Path,
+                                                           monkeypatch: pytest.MonkeyPatch) -> None:
+    """``respecd bench inference --runtime NAME``: CPU ms of forward and forward + attribution per size, and each
+    forward's ratio to the FLOP limit (what ``../shared/checks/performance`` reads)."""
+    import argparse
+
+    from respecd.lab.bench import inference
+
+    monkeypatch.setattr(inference, "RESOLUTIONS", ((640, 360),))
+    monkeypatch.delenv("STATE_DIRECTORY", raising=False)
+    monkeypatch.setenv("XDG_STATE_HOME", str(tmp_path))  # the export goes to the default state directory
+    args = argparse.Namespace(weights="builtin:sim-rover", repeats=1, threads=1, seed=1, runtime=runtime)
+    figures = inference.run(args)
+    assert set(figures["runtimes"]) == {"torch", runtime}
+    row = figures["runtimes"][runtime]["640x360"]
+    assert 0 < row["forward_ms"] < row["attributed_ms"]
+    assert row["to_limit"] == pytest.approx(row["forward_ms"] / figures["limit_ms"]["640x360"], rel=0.02)
+    assert figures["peak_gflops"] > 1 and set(figures["gflop"]) == {"640x360"}
+    assert (tmp_path / "respecd" / "exported").is_dir()

@@ -74,11 +74,16 @@ def test_inference_bench_reports_every_resolution(monkeypatch) -> None:
     from respecd.lab.bench import inference
 
     monkeypatch.setattr(inference, "RESOLUTIONS", ((640, 360),))  # one size keeps the test short
-    args = argparse.Namespace(weights="builtin:sim-rover", repeats=1, threads=1, seed=1)
+    args = argparse.Namespace(weights="builtin:sim-rover", repeats=1, threads=1, seed=1, runtime="torch")
     figures = inference.run(args)
     row = figures["resolutions"][0]
     assert row["rgb"] == "640x360" and row["forward_ms"] > 0 and row["attribution_ms"] > 0
     assert figures["model_params"] == 1_506_291
+    torch_row = figures["runtimes"]["torch"]["640x360"]
+    assert 0 < torch_row["forward_ms"] < torch_row["attributed_ms"]
+    assert torch_row["to_limit"] == pytest.approx(torch_row["forward_ms"] / figures["limit_ms"]["640x360"], rel=0.02)
+    assert figures["gflop"]["640x360"] == pytest.approx(3.06, abs=0.01)  # builtin:sim-rover's convolutions at 640x384
+    assert figures["limit_ms"]["640x360"] == pytest.approx(3.06 / figures["peak_gflops"] * 1000, rel=0.01)
     # the cost of the attribution as a share of a forward, per variant; the default's is the row's own
     assert row["ratio"] == row["methods"]["ablation"]["ratio"] and row["cpu_ratio"] > 0
     assert set(row["methods"]) == {"ablation", "ablation+sufficiency", "gradient"}

@@ -51,6 +51,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folder data: which images (auto: the val split if the folder has one, else all)")
     parser.add_argument("--modality", choices=("auto", "rgb", "thermal"), default="auto",
                         help="folder data of one modality: which (auto: single-channel images are thermal)")
+    parser.add_argument("--runtime", choices=("torch", "onnxruntime", "openvino"), default="torch",
+                        help="what runs the net (perception.runtime; default torch): the exported graphs through "
+                             "ONNX Runtime or OpenVINO")
+    parser.add_argument("--precision", choices=("f32", "bf16", "f16"), default="f32",
+                        help="inference precision of --runtime (perception.precision; default f32)")
     # 1 thread: on a 2-core box shared with other work, two spin-waiting threads ran up to 10x slower
     parser.add_argument("--threads", type=positive_int, default=1, help="torch threads, at least 1 (default 1)")
     parser.add_argument("--no-progress", "--quiet", dest="quiet", action="store_true",
@@ -65,13 +70,10 @@ def main(args: argparse.Namespace) -> int:
 
     from respecd.lab.detector import report as report_mod
     from respecd.lab.detector.evaluate import EVAL_SEED, OPERATING_THRESHOLD, evaluate_samples, evaluate_sim
-    from respecd.perception.config import PerceptionConfig
 
     seed = EVAL_SEED if args.seed is None else args.seed  # --seed >= 0: checked by its argparse type
     torch.set_num_threads(args.threads)
-    pcfg = PerceptionConfig(weights=args.weights, score_threshold=EVAL_SCORE_THRESHOLD)
-    if args.method:
-        pcfg = pcfg.model_copy(update={"attribution_method": args.method})
+    pcfg = _perception(args)
     detector = _detector(args.weights, pcfg)
     summary = None
     threshold = args.attribution_threshold if args.attribution_threshold is not None else OPERATING_THRESHOLD
@@ -139,6 +141,22 @@ def _record_in_card(args: argparse.Namespace, summary: dict, images: int, title:
         **summary, "images": images, "what": title, "command": "respecd " + " ".join(sys.argv[1:]),
     }
     card.write_text(json.dumps(body, indent=2) + "\n", encoding="utf-8")
+
+
+def _perception(args: argparse.Namespace) -> Any:
+    """The perception config of the evaluated detector: every box, the runtime and precision asked for."""
+    from pydantic import ValidationError
+
+    from respecd.perception.config import PerceptionConfig
+
+    if args.runtime != "torch" and args.weights.endswith(".weights"):
+        raise InputError(f"--runtime {args.runtime}: exports a respecd checkpoint, not a Darknet .weights file")
+    method = {"attribution_method": args.method} if args.method else {}
+    try:
+        return PerceptionConfig(weights=args.weights, score_threshold=EVAL_SCORE_THRESHOLD, runtime=args.runtime,
+                                precision=args.precision, torch_threads=args.threads, **method)
+    except ValidationError as err:
+        raise InputError(f"--runtime {args.runtime}: {err.errors()[0]['msg'].removeprefix('Value error, ')}") from err
 
 
 def _detector(weights: str, pcfg):

@@ -37,6 +37,17 @@ EXAMPLE_HW = (384, 640)  # the example input's size; every graph takes any multi
 MANIFEST = "manifest.json"
 
 
+NET_CODE = ("model.py", "darknet.py", "darknet_fusion.py", "parts.py", "fold.py", "export.py")  # what a graph is
+
+
+def code_hash() -> str:
+    """SHA-256 of the modules that define the exported graphs: an export made by other code is not reused."""
+    digest = hashlib.sha256(FORMAT.encode())
+    for name in NET_CODE:
+        digest.update((Path(__file__).parent / name).read_bytes())
+    return digest.hexdigest()
+
+
 def checkpoint_hash(path: Path) -> str:
     """SHA-256 of the checkpoint file's bytes (what an export is keyed by)."""
     digest = hashlib.sha256()
@@ -93,8 +104,8 @@ def read_manifest(folder: Path, spec: ModelSpec | None = None) -> dict[str, Any]
         raise ConfigError(f"{folder}: no {MANIFEST}: not a folder written by `respecd export`") from err
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
         raise ConfigError(f"{path}: unreadable export manifest ({err})") from err
-    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
-        found = manifest.get("format") if isinstance(manifest, dict) else None
+    found = manifest.get("format") if isinstance(manifest, dict) else None
+    if found != FORMAT or not isinstance(manifest.get("graphs"), dict):
         raise ConfigError(f"{path}: export format {found!r}, expected {FORMAT!r} (re-run `respecd export`)")
     missing = [g["file"] for g in manifest["graphs"].values() if not (folder / g["file"]).is_file()]
     if missing:
@@ -105,17 +116,13 @@ def read_manifest(folder: Path, spec: ModelSpec | None = None) -> dict[str, Any]
 
 
 def cached(model: Net, checkpoint_path: Path, cache_root: Path, source: str = "") -> Path:
-    """The export folder of this checkpoint's content under ``cache_root``, exported first if missing.
-
-    Written into a temporary folder beside it and renamed, so a crash or a second daemon never
-    leaves or reads half an export. ``model`` is folded in place when an export is needed."""
+    """The export folder of this checkpoint's content (and this code's nets) under ``cache_root``, exported
+    first if missing. Written into a temporary folder beside it and renamed, so a crash or a second daemon
+    never leaves or reads half an export. ``model`` is folded in place when an export is needed."""
     sha = checkpoint_hash(checkpoint_path)
-    folder = cache_root / f"{checkpoint_path.stem}-{sha[:16]}"
-    try:
-        read_manifest(folder, model.spec)
+    folder = cache_root / f"{checkpoint_path.stem}-{sha[:16]}-{code_hash()[:8]}"
+    if manifest_ok(folder, model.spec):
         return folder
-    except ConfigError:
-        pass
     log.info("detector_exporting", weights=source or str(checkpoint_path), to=str(folder))
     try:
         cache_root.mkdir(parents=True, exist_ok=True)
@@ -124,10 +131,11 @@ def cached(model: Net, checkpoint_path: Path, cache_root: Path, source: str = ""
         raise ConfigError(f"{cache_root}: cannot write the exported graphs there ({err.strerror or err})") from err
     try:
         export(model, tmp, sha, source)
-        shutil.rmtree(folder, ignore_errors=True)  # an export of an older format
+        for older in cache_root.glob(f"{checkpoint_path.stem}-{sha[:16]}-*"):  # exported by other code
+            shutil.rmtree(older, ignore_errors=True)
         os.replace(tmp, folder)
     except OSError as err:
-        if read_manifest_ok(folder, model.spec):  # another process finished the same export first
+        if manifest_ok(folder, model.spec):  # another process finished the same export first
             return folder
         raise ConfigError(f"{folder}: cannot write the exported graphs ({err.strerror or err})") from err
     finally:
@@ -135,7 +143,8 @@ def cached(model: Net, checkpoint_path: Path, cache_root: Path, source: str = ""
     return folder
 
 
-def read_manifest_ok(folder: Path, spec: ModelSpec) -> bool:
+def manifest_ok(folder: Path, spec: ModelSpec) -> bool:
+    """Whether ``folder`` holds a complete export of a net with ``spec``."""
     try:
         read_manifest(folder, spec)
         return True

@@ -38,11 +38,19 @@ def backend(name: str) -> ModuleType:
     return importlib.import_module(RUNTIMES[name])
 
 
+def installed(module: str) -> bool:
+    """Whether ``module`` can be imported, without importing it."""
+    try:
+        return importlib.util.find_spec(module) is not None
+    except (ImportError, ValueError):  # ValueError: a module set to None in sys.modules (held back)
+        return False
+
+
 def problem(config: PerceptionConfig) -> str | None:
     """Why ``config``'s runtime, device and precision cannot run on this machine, or None (torch: None)."""
     if config.runtime == "torch":
         return None
-    if importlib.util.find_spec("onnx") is None:
+    if not installed("onnx"):
         return (f"runtime {config.runtime} needs the onnx package to export the checkpoint (torch.onnx writes "
                 f"through it): pip install 'respecd[{EXTRAS[config.runtime]}]'")
     return backend(config.runtime).problem(config)

@@ -28,8 +28,8 @@ Provider = str | tuple[str, dict[str, str]]
 
 def parse_device(device: str) -> tuple[str, int]:
     """``perception.device`` -> (cpu | cuda | tensorrt, GPU index); ConfigError for anything else."""
-    kind, _, index = device.partition(":")
-    if kind in ("cpu", "cuda", "tensorrt") and (not index or (index.isdigit() and kind != "cpu")):
+    kind, colon, index = device.partition(":")
+    if kind in ("cpu", "cuda", "tensorrt") and (not colon or (index.isdigit() and kind != "cpu")):
         return kind, int(index or 0)
     raise ConfigError(f"perception.device: {device!r} is not a device of runtime onnxruntime "
                       "(expected cpu, cuda, cuda:N, tensorrt or tensorrt:N)")

@@ -45,10 +45,10 @@ def load_openvino() -> ModuleType:
 
 def parse_device(device: str) -> str:
     """``perception.device`` -> OpenVINO's device name (CPU, GPU, GPU.N); ConfigError for anything else."""
-    kind, _, index = device.partition(":")
-    if kind == "cpu" and not index:
+    kind, colon, index = device.partition(":")
+    if kind == "cpu" and not colon:
         return "CPU"
-    if kind == "gpu" and (not index or index.isdigit()):
+    if kind == "gpu" and (not colon or index.isdigit()):
         return "GPU" + (f".{index}" if index else "")
     raise ConfigError(f"perception.device: {device!r} is not a device of runtime openvino "
                       "(expected cpu, gpu or gpu:N)")
