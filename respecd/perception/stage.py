@@ -76,7 +76,9 @@ class PerceptionStage:
         """``calibration``: per modality (``calibration_from_profile``); None when a detector is given."""
         self.config = config
         self.calibration = dict(calibration or {})
-        self.exports = exports  # where another runtime's exported graphs are cached (FusionDetector.load)
+        # with perception.runtime other than torch: where the exported graphs are cached (the session's state
+        # directory's exported/; None: the default state directory's), see FusionDetector.load
+        self.exports = exports
         self.clock = clock
         self.last: Percept | None = None
         self.processed = 0
