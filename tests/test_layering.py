@@ -129,8 +129,8 @@ def test_only_the_runtime_back_ends_import_the_runtime_extras() -> None:
     modules the registry imports when a profile names them (or behind an ImportError fallback)."""
     back_ends = REPO / "respecd" / "perception" / "runtimes"
     offenders = [f"{m.relative_to(REPO)}:{line}: imports {name}"
-                 for m in daemon_modules() if m.parent != back_ends
-                 for line, name, guarded in imported_names(m)
+                 for m in modules() if layer(m) in ("daemon", "cli") and m.parent != back_ends
+                 for line, name, guarded in imported_names(m.read_text(), str(m))
                  if name.split(".")[0] in RUNTIME_EXTRAS and not guarded]
     assert not offenders, "\n".join(offenders)
 
