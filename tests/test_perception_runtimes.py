@@ -91,10 +91,11 @@ def assert_same(want: Percept, got: Percept, what: str) -> None:
             assert a.contributions is not None and b.contributions is not None, f"{what}: detection {i}"
             for k, v in a.contributions.items():
                 assert abs(v - b.contributions[k]) <= CONTRIBUTION, f"{what}: detection {i} contribution of {k}"
-    if want.contributions is not None:
-        assert got.contributions is not None, what
-        for k, v in want.contributions.items():
-            assert abs(v - got.contributions[k]) <= CONTRIBUTION, f"{what}: scene contribution of {k}"
+    for field in ("contributions", "dependence", "sufficiency"):  # per sensor, whichever the percept carries
+        wanted, found = getattr(want, field, None), getattr(got, field, None)
+        assert (wanted is None) == (found is None), f"{what}: {field}"
+        for k, v in (wanted or {}).items():
+            assert abs(v - found[k]) <= CONTRIBUTION, f"{what}: scene {field} of {k}"
 
 
 @pytest.mark.slow

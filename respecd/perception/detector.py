@@ -134,7 +134,7 @@ class FusionDetector:
     def run(self, aligned: AlignedInput, attribute_now: bool, t: float = 0.0) -> Inference:
         """Network + NMS (+ attribution) on an aligned input."""
         x = torch.from_numpy(aligned.tensor).unsqueeze(0).to(self.device)  # (1, C, Hp, Wp)
-        if self.model.engine is None:
+        if getattr(self.model, "engine", None) is None:  # torch runs the net (any net, not only ours)
             x = fold.channels_last(x)  # the layout for_inference put torch's net in
         presence = torch.from_numpy(aligned.presence).unsqueeze(0).to(self.device)  # (1, A)
         cfg = self.config
