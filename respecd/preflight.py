@@ -22,7 +22,9 @@ from respecd import filekind, pathkind
 from respecd.config import LoadedProfile
 from respecd.drivers.uvc import UVCConfig
 from respecd.errors import ConfigError
-from respecd.perception.config import resolve_weights
+from respecd.perception.config import BUILTIN_PREFIX, resolve_weights
+
+NOT_A_DEVICE = "is not a torch device"
 
 
 def check_profile(loaded: LoadedProfile, state_dir: Path | None = None, policy: str | None = None,
@@ -39,6 +41,40 @@ def check_profile(loaded: LoadedProfile, state_dir: Path | None = None, policy: 
     if profile.perception.enabled:
         problems += _perception_device(loaded)
     return problems + _learning_state_dir(loaded, state_dir, policy, create_state_dir)
+
+
+def check_portable(loaded: LoadedProfile) -> tuple[list[str], list[str]]:
+    """(problems, skipped): what a profile needs wherever it is checked, and the checks of this
+    machine left out (the torch device, files that live on the robot, the state directory), each
+    with what it would say here. For a profile studied away from its robot (``check-config
+    --portable``); a built-in checkpoint ships in the package and is checked everywhere."""
+    perception = loaded.model.perception
+    local_weights = perception.enabled and not perception.weights.startswith(BUILTIN_PREFIX)
+    problems = [*_replay_sensors(loaded)]
+    skipped = []
+    if local_weights and not resolve_weights(perception.weights).exists():
+        skipped.append(f"perception.weights: {perception.weights} (not on this machine)")
+    else:
+        problems += _weights(loaded)
+    if perception.enabled:
+        here = device_problem(perception.device)
+        if here and NOT_A_DEVICE in here:  # a typo is the profile's problem on every machine
+            problems.append(_at(loaded, ("perception", "device"), here))
+        skipped.append(f"perception.device: {perception.device!r}" + (f" (here: {here})" if here else ""))
+    for line in _sensor_files(loaded):
+        skipped.append(f"sensor file {_unlocated(line)}")
+    if loaded.model.recording.enabled:
+        found = [f" (here: {_unlocated(line)})" for line in _recording(loaded)]
+        skipped.append(f"recording.path: {loaded.model.recording.path}{''.join(found)}")
+    if loaded.model.controller.enabled:
+        skipped.append("the state directory and its Q-table")
+    return problems, skipped
+
+
+def _unlocated(line: str) -> str:
+    """A problem line without its ``FILE:LINE: `` prefix."""
+    parts = line.split(": ", 1)
+    return parts[1] if len(parts) == 2 and ":" in parts[0] else line
 
 
 def check_state_dir(path: Path, create: bool = True) -> str | None:
@@ -104,7 +140,7 @@ def device_problem(device: str) -> str | None:
     try:
         parsed = torch.device(device)
     except (RuntimeError, ValueError) as err:
-        return f"{device!r} is not a torch device ({err}); expected cpu, cuda or cuda:N"
+        return f"{device!r} {NOT_A_DEVICE} ({err}); expected cpu, cuda or cuda:N"
     if parsed.type == "cpu":
         return None
     if parsed.type == "cuda":

@@ -226,3 +226,29 @@ def test_a_second_learning_daemon_on_the_same_state_dir_is_refused(tmp_path: Pat
             if first.poll() is None:
                 first.kill()
     assert _spawn("--duration", "1", "--state-dir", str(state), timeout=120).returncode == 0  # released at exit
+
+
+def test_portable_check_config_passes_the_jetson_profile_and_names_what_it_left_out() -> None:
+    """Studying the robot's profile on a laptop: the profile's own checks, not this machine's."""
+    result = _run("check-config", "--portable", str(REPO / "configs" / "spec-rover.yaml"))
+    assert result.returncode == 0, result.stderr
+    assert "spec-rover.yaml: ok (spec-rover, 5 sensors, portable)" in result.stdout
+    assert "left out (this machine's checks, not the profile's):" in result.stdout
+    assert "    perception.device: 'cuda'" in result.stdout and "Q-table" in result.stdout
+    if torch.version.cuda is None:
+        assert "(here: 'cuda' cannot be used: this torch" in result.stdout  # what the plain check would say
+
+
+def test_portable_check_skips_the_robots_files_but_not_the_profiles_mistakes(tmp_path: Path) -> None:
+    robot = _profile(tmp_path, "perception:\n  weights: /var/lib/respecd/mine.pt\n  device: cuda:1\n"
+                     "recording:\n  enabled: true\n  path: /var/lib/respecd/rec/r-{time}.mcap\n")
+    result = _run("check-config", "--portable", str(robot))
+    assert result.returncode == 0, result.stderr
+    assert "perception.weights: /var/lib/respecd/mine.pt (not on this machine)" in result.stdout
+    assert "recording.path: /var/lib/respecd/rec/r-{time}.mcap" in result.stdout
+    assert _run("check-config", str(robot)).returncode == 2  # the plain check stays this machine's
+    for extra, found in [("perception:\n  device: cdua\n", "perception.device: 'cdua' is not a torch device"),
+                         ("perception:\n  weights: builtin:nope\n", "no built-in checkpoint named 'nope'"),
+                         ("perception:\n  score_threshold: 2\n", "perception.score_threshold")]:
+        result = _run("check-config", "--portable", str(_profile(tmp_path, extra, "bad.yaml")))
+        assert result.returncode == 2 and found in result.stderr and "Traceback" not in result.stderr

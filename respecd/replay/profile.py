@@ -1,6 +1,7 @@
 """The profile a replay runs with: the recorded (or given) profile, every sensor swapped for
-a ``replay`` driver that serves that sensor's logged frames, recording off, and — for a
-lockstep replay — nothing that reads this machine's state (the CPU probe)."""
+a ``replay`` driver that serves that sensor's logged frames, recording off, the detector on a
+device this machine has (``replay.detector``), and — for a lockstep replay — nothing that reads
+this machine's state (the CPU probe)."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from pydantic import ValidationError
 from respecd.errors import ConfigError, InputError
 from respecd.messages import Frame
 from respecd.record.reader import SessionLog
+from respecd.replay import detector
 
 if TYPE_CHECKING:
     from respecd.config import Profile
@@ -68,6 +70,7 @@ def replay_profile(base: dict[str, Any], session: SessionLog, firsts: dict[str, 
         raise InputError(f"{session.path}: no profile sensor has frames in the log (the log has: {names})")
     doc["sensors"] = sensors
     doc["recording"] = {**(base.get("recording") or {}), "enabled": False}
+    doc["perception"] = detector.place(base.get("perception"))  # a device this machine can use
     controller = dict(base.get("controller") or {})
     controller["seed"] = seed
     if policy is not None:

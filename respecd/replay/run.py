@@ -32,8 +32,8 @@ import structlog
 from respecd.drivers.replay import ReplayConfig
 from respecd.errors import InputError
 from respecd.record.reader import SessionLog, open_log
+from respecd.replay import detector, report_out
 from respecd.replay import report as rpt
-from respecd.replay import report_out
 from respecd.replay.latency import LatencyModel
 from respecd.replay.profile import first_frames, replay_profile
 
@@ -85,6 +85,9 @@ def replay(log_path: str | Path, *, config: str | Path | None = None, policy: st
               f"{session.duration_s:.2f} s up to the last complete chunk", file=sys.stderr)
         log.warning("replay.truncated", path=str(session.path), readable_s=round(session.duration_s, 3))
     base = _base_profile(config, session)
+    chosen_by, foreign = detector.provenance(config, session)
+    if foreign:
+        detector.announce(str((base.get("perception") or {}).get("weights", "builtin:sim-rover")))
     firsts = first_frames(session)
     if not firsts:
         raise InputError(f"{session.path}: the log holds no sensor frames to replay")
@@ -97,6 +100,8 @@ def replay(log_path: str | Path, *, config: str | Path | None = None, policy: st
     entry.update(policy=profile.controller.policy, seed=seed, speed=speed, truncated=session.truncated)
     if hasattr(session, "skipped_report"):  # a ROS bag: its unreadable messages, per topic
         entry["skipped"] = session.skipped_report()
+    entry["detector"] = detector.entry(profile.perception, (base.get("perception") or {}).get("device"), chosen_by,
+                                       foreign)
     return _emit(report, session, entry)
 
 

@@ -1,0 +1,59 @@
+"""A robot's session replays on whatever machine opens it: a log recorded under a ``device:
+cuda`` profile replays on this CPU (said once in the log and in the report), and a real camera
+bag the project never saw replays with a report that names its detector and claims no F1
+without ground truth."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+import yaml
+from conftest import run_cli
+from real_camera import LLVIP, photos, write_log
+
+REPO = Path(__file__).resolve().parents[1]
+
+pytestmark = pytest.mark.skipif(not LLVIP.is_dir(), reason=f"shared photos not found at {LLVIP}")
+
+
+def _jetson_profile() -> dict:
+    """The simulated rover's profile as the Jetson would run it: the detector on CUDA, one camera."""
+    profile = yaml.safe_load((REPO / "configs" / "sim-rover.yaml").read_text())
+    profile["name"] = "jetson-camera"
+    profile["sensors"] = [profile["sensors"][0] | {"resolution": [640, 512]}]
+    profile["perception"] = {"device": "cuda"}
+    profile["controller"] = {"decision_period_s": 0.5, "window_s": 0.5}
+    return profile
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA: the profile's device is usable")
+def test_a_log_of_a_cuda_profile_replays_on_this_cpu(tmp_path: Path) -> None:
+    log = write_log(tmp_path / "jetson.mcap", _jetson_profile(), photos(8), hz=4)
+    report = tmp_path / "r.json"
+    ran = run_cli("--replay", str(log), "--speed", "max", "--policy", "static", "--report", str(report),
+                  "--log-format", "json")
+    assert ran.returncode == 0, ran.stderr[-2000:]
+    detector = json.loads(report.read_text())["policies"]["static"]["detector"]
+    assert detector["device"] == "cpu" and detector["profile_device"] == "cuda"
+    assert detector["chosen_by"] == "the profile recorded in the log" and "CUDA" in detector["device_note"]
+    assert detector["checkpoint"] == "sim-rover.pt" and len(detector["sha256"]) == 64
+    said = [json.loads(line) for line in ran.stdout.splitlines() if '"replay.device"' in line]
+    assert len(said) == 1 and said[0]["profile_device"] == "cuda" and said[0]["device"] == "cpu"
+    # the live daemon keeps its clear refusal of the same profile
+    config = tmp_path / "jetson.yaml"
+    config.write_text(yaml.safe_dump(_jetson_profile()))
+    live = run_cli("--config", str(config), "--duration", "1", "--state-dir", str(tmp_path / "st"))
+    assert live.returncode == 2 and "perception.device: 'cuda' cannot be used" in live.stderr
+
+
+def test_a_device_typo_is_a_profile_error_for_a_replay_too(tmp_path: Path) -> None:
+    profile = _jetson_profile()
+    profile["perception"] = {"device": "cdua"}
+    log = write_log(tmp_path / "typo.mcap", profile, photos(2), hz=4)
+    ran = run_cli("--replay", str(log), "--speed", "max")
+    assert ran.returncode == 2 and "perception.device: 'cdua' is not a torch device" in ran.stderr
+    assert "Traceback" not in ran.stderr
