@@ -12,7 +12,7 @@ import pytest
 import torch
 import yaml
 from conftest import run_cli
-from real_camera import LLVIP, photos, write_log
+from real_camera import LLVIP, photos, write_camera_bag, write_log
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -57,3 +57,26 @@ def test_a_device_typo_is_a_profile_error_for_a_replay_too(tmp_path: Path) -> No
     ran = run_cli("--replay", str(log), "--speed", "max")
     assert ran.returncode == 2 and "perception.device: 'cdua' is not a torch device" in ran.stderr
     assert "Traceback" not in ran.stderr
+
+
+@pytest.mark.slow
+def test_a_real_camera_bag_names_its_detector_and_claims_no_f1(tmp_path: Path) -> None:
+    """Seven real photos at 5 Hz (1.2 s): the simulator's detector, modelled at 1.6 s for its first
+    (attributed) 1280x1024 inference, outlives the bag; the replay waits for that percept."""
+    bag = write_camera_bag(tmp_path / "street", photos(7, (1280, 1024)), hz=5)
+    report = tmp_path / "r.json"
+    ran = run_cli("--replay", str(bag), "--speed", "max", "--report", str(report), "--log-format", "json")
+    assert ran.returncode == 0, ran.stderr[-2000:]
+    first = json.loads(ran.stdout.splitlines()[0])
+    assert first["event"] == "replay.detector" and first["weights"] == "builtin:sim-rover"
+    assert "--profile builtin:spec-rover" in first["hint"]
+    entry = json.loads(report.read_text())["policies"]["learn"]
+    assert entry["compute"]["percepts"] >= 1 and entry["timeline"]  # the last inference was waited for
+    assert entry["reference"] == "none" and entry["quality"]["f1"] is None
+    assert entry["quality"]["note"] == "no ground truth"
+    detector = entry["detector"]
+    assert detector["checkpoint"] == "sim-rover.pt" and "--profile builtin:spec-rover" in detector["hint"]
+    assert detector["chosen_by"].startswith("the default profile")
+    table = ran.stdout[ran.stdout.index("policy "):]
+    assert "no ground truth" in table and "0.000" not in table
+    assert "detector: builtin:sim-rover (sim-rover.pt) on cpu" in table

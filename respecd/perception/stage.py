@@ -94,6 +94,15 @@ class PerceptionStage:
         self._inputs = frozenset({"rgb", *config.model.aux_modalities})
         self._last_inputs: dict[str, tuple[int, float]] = {}
         self.skipped = 0  # bundles whose detector inputs were all seen already
+        self._pending: asyncio.Future[None] | None = None  # done once the bundle taken has its percept out
+        self._finishing = False
+
+    def finish(self) -> asyncio.Future[None] | None:
+        """Take no new bundle; the future is done when the one being worked on has its percept
+        out (None when idle). A replay calls it at the log's end: the robot's detector would
+        have finished that bundle, and none after it is part of the log."""
+        self._finishing = True
+        return self._pending if self._pending is not None and not self._pending.done() else None
 
     def request_attribution(self) -> None:
         """Attribute the next bundle, whatever the cadence says."""
@@ -130,11 +139,14 @@ class PerceptionStage:
                     await self.clock.sleep_until(self._busy_until)  # still busy on the modelled clock
                 bundle = await bundles.get()
                 taken = self.clock.now()
+                if self._finishing:
+                    continue
                 if not self._has_new_input(bundle):
                     self.skipped += 1
                     continue
                 attribute = self._attribution_due(bundle.t)
                 frames = dict(bundle.frames)
+                self._pending = loop.create_future()
                 if self.latency_model is None:
                     percept = await loop.run_in_executor(self._executor, self._detector.infer, frames, attribute)
                     modelled = None
@@ -150,7 +162,10 @@ class PerceptionStage:
                     percept = dataclasses.replace(percept, latency=modelled)
                     self._busy_until = taken + modelled
                 percepts.put(percept)
+                self._pending.set_result(None)
         finally:
+            if self._pending is not None and not self._pending.done():
+                self._pending.cancel()
             await self._shutdown()
 
     async def _infer_beside_the_clock(self, frames: dict[Any, Any], attribute: bool, due: float) -> Percept:

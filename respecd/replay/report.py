@@ -2,7 +2,8 @@
 estimated sensor energy, and the actions over time — as JSON, a PNG timeline and a table.
 
 Reference detections are the log's ground truth when its RGB frames carry ``meta["gt"]``
-(the simulated rover's do), otherwise the detections the log recorded at full fidelity.
+(the simulated rover's do), otherwise the detections the log recorded at full fidelity; a log
+with neither (a foreign bag) has no quality figures (None, "no ground truth"), never a 0.
 Quality is matched per percept at IoU >= 0.5 (greedy by confidence), in the pixel frame of
 the logged (native) RGB resolution.
 """
@@ -231,23 +232,29 @@ def energy(configs: Sequence[tuple[float, str, SensorConfig]], power: dict[str, 
     return {"sensor_j": joules, "total_j": round(total, 3), "mean_w": round(total / span, 3)}
 
 
-def summarize(c: Collector, t0: float, t1: float, power: dict[str, Any], describe: Any = None) -> dict[str, Any]:
-    """One policy's entry of the report (plain JSON types)."""
-    span = max(t1 - t0, 1e-9)
+def matched(c: Collector) -> dict[str, Any]:
+    """Precision, recall and F1 against the reference; None where the log has none to score
+    against (a foreign bag without ground truth): a 0.000 there would read as a result."""
+    if c.reference.kind == "none":
+        return {"precision": None, "recall": None, "f1": None, "tp": None, "fp": None, "fn": None,
+                "note": "no ground truth"}
     precision = c.tp / (c.tp + c.fp) if c.tp + c.fp else 0.0
     recall = c.tp / (c.tp + c.fn) if c.tp + c.fn else 0.0
     f1 = 2 * precision * recall / (precision + recall) if precision + recall else 0.0
+    return {"precision": round(precision, 4), "recall": round(recall, 4), "f1": round(f1, 4),
+            "tp": c.tp, "fp": c.fp, "fn": c.fn}
+
+
+def summarize(c: Collector, t0: float, t1: float, power: dict[str, Any], describe: Any = None) -> dict[str, Any]:
+    """One policy's entry of the report (plain JSON types)."""
+    span = max(t1 - t0, 1e-9)
     actions = Counter(d.action for d in c.decisions)
     switches = sum(1 for a, b in zip(c.decisions, c.decisions[1:], strict=False) if a.action != b.action)
     conf = [p["conf_agg"] for p in c.timeline]
     return {
         "replayed_s": round(span, 3),
         "reference": c.reference.kind,
-        "quality": {
-            "precision": round(precision, 4), "recall": round(recall, 4), "f1": round(f1, 4),
-            "tp": c.tp, "fp": c.fp, "fn": c.fn,
-            "mean_conf_agg": round(float(np.mean(conf)), 4) if conf else 0.0,
-        },
+        "quality": {**matched(c), "mean_conf_agg": round(float(np.mean(conf)), 4) if conf else 0.0},
         "compute": {
             "percepts": c.percepts,
             "attributions": c.attributions,

@@ -82,7 +82,9 @@ def _cell(entry: dict[str, Any], policy: str, key: Any, fmt: str, scale: float =
         return policy
     if key == "n_decisions":
         return str(len(entry.get("decisions", [])))
-    value = entry[key[0]][key[1]]
+    value = (entry.get(key[0]) or {}).get(key[1])
+    if value is None:  # nothing to score against (no ground truth), or a figure not measured
+        return "-"
     return fmt.format(value * scale if scale != 1.0 else value)
 
 
@@ -95,8 +97,27 @@ def table(report: dict[str, Any]) -> str:
     lines = ["  ".join(cell.rjust(w) if i else cell.ljust(w) for i, (cell, w) in enumerate(zip(r, widths, strict=True)))
              for r in rows]
     reference = {e["reference"] for e in report["policies"].values()}
-    lines.append(f"reference: {', '.join(sorted(reference))}; quality matched at IoU >= 0.5")
+    if reference == {"none"}:
+        lines.append("no ground truth: the log has neither ground-truth boxes nor recorded detections, so F1, "
+                     "recall and precision are not computed")
+    else:
+        lines.append(f"reference: {', '.join(sorted(reference))}; quality matched at IoU >= 0.5")
+    lines += _detector_lines(report)
     return "\n".join(lines)
+
+
+def _detector_lines(report: dict[str, Any]) -> list[str]:
+    """Which checkpoint ran, on which device, and (for a foreign bag on the default) how to choose another."""
+    lines = []
+    for detector in {json.dumps(e["detector"], sort_keys=True) for e in report["policies"].values() if "detector" in e}:
+        d = json.loads(detector)
+        if d.get("enabled") is False:
+            continue
+        line = f"detector: {d['weights']}" + (f" ({d['checkpoint']})" if "checkpoint" in d else "")
+        line += f" on {d['device']}" + (f", not the profile's {d['profile_device']}" if "profile_device" in d else "")
+        lines.append(f"{line}; chosen by {d['chosen_by']}")
+        lines += [f"  {d[k]}" for k in ("note", "hint") if k in d]
+    return lines
 
 
 def plot(report: dict[str, Any], png: Path, plt: Any) -> None:

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import math
 import sys
 import time
 from pathlib import Path
@@ -34,6 +35,7 @@ from respecd.errors import InputError
 from respecd.record.reader import SessionLog, open_log
 from respecd.replay import detector, report_out
 from respecd.replay import report as rpt
+from respecd.replay.ending import LogEnd
 from respecd.replay.latency import LatencyModel
 from respecd.replay.profile import first_frames, replay_profile
 
@@ -241,7 +243,9 @@ class _Replay:
         bar = _progress_bar()(total=round(self.duration, 1), unit="s", desc="replay", mininterval=1.0,
                               disable=not progress_shown(self.duration, sys.stderr),
                               file=sys.stderr, leave=False, bar_format=BAR_FORMAT)
-        task = asyncio.create_task(session.run(duration=self.duration, stop=stop), name="replay-session")
+        ending = LogEnd(session, end, stop)  # the log's end, then the inference still running on it
+        watcher = asyncio.create_task(ending.watch(), name="replay-end")
+        task = asyncio.create_task(session.run(stop=ending.finished), name="replay-session")
 
         def progress(t: float) -> None:
             done = round(min(t, end) - self.t0, 1)
@@ -250,13 +254,14 @@ class _Replay:
 
         try:
             if lockstep:
-                await clock.run(end, on_step=progress, done=task.done)
+                await clock.run(math.inf, on_step=progress, done=task.done)
             else:
                 while not task.done():
                     progress(clock.now())
                     await asyncio.wait([task], timeout=0.5)
             await task
         finally:
+            watcher.cancel()
             bar.close()
 
 
