@@ -15,7 +15,6 @@ from typing import Any
 import structlog
 
 from respecd.atomicfile import write_atomically
-from respecd.messages import MODALITIES
 
 log = structlog.get_logger(__name__)
 
@@ -60,6 +59,8 @@ def write(path: Path, report: dict[str, Any], figure: bool = True) -> Path | Non
     if plt is None:
         log.info("replay.report.no_png", reason="matplotlib not installed (pip install respecd[lab])")
         return None
+    from respecd.replay.figure import plot
+
     png = path.with_suffix(".png")
     plot(report, png, plt)
     return png
@@ -118,55 +119,3 @@ def _detector_lines(report: dict[str, Any]) -> list[str]:
         lines.append(f"{line}; chosen by {d['chosen_by']}")
         lines += [f"  {d[k]}" for k in ("note", "hint") if k in d]
     return lines
-
-
-def plot(report: dict[str, Any], png: Path, plt: Any) -> None:
-    """Timeline per policy: actions, contributions, ConfAgg, latency (the load signal)."""
-    names: dict[str, int] = {}
-    for entry in report["policies"].values():  # the action labels first: they size the left margin
-        for d in entry["decisions"]:
-            names.setdefault(_action_label(d), len(names))
-    fig, axes = plt.subplots(4, 1, figsize=(12, 4.5 + 5.5 + 0.18 * len(names)), sharex=True,
-                             gridspec_kw={"height_ratios": [1.2 + 0.12 * len(names), 1, 1, 1]})
-    for policy, entry in report["policies"].items():
-        _plot_actions(axes[0], policy, entry, names)
-        times = [p["t"] for p in entry["timeline"]]
-        axes[2].plot(times, [p["conf_agg"] for p in entry["timeline"]], label=policy, lw=1)
-        axes[3].plot(times, [p["latency_ms"] for p in entry["timeline"]], label=policy, lw=1)
-        contributions = [(p["t"], p["contributions"]) for p in entry["timeline"] if p["contributions"]]
-        keys = {m for _, c in contributions for m in c}
-        modalities = keys & set(MODALITIES) or keys  # per-modality scores, not per input channel
-        for modality in sorted(modalities):
-            axes[1].plot([t for t, _ in contributions], [c.get(modality, 0.0) for _, c in contributions],
-                         label=f"{policy}: {modality}", lw=1, marker=".", ms=3)
-    titles = ("action chosen at each decision", "contribution per modality", "ConfAgg", "perception latency")
-    ylabels = ("action", "contribution (0-1)", "ConfAgg (0-1)", "latency (ms)")
-    for ax, title, ylabel in zip(axes, titles, ylabels, strict=True):
-        ax.set_title(title, fontsize=9, loc="left")
-        ax.set_ylabel(ylabel, fontsize=8)
-        ax.grid(alpha=0.3)
-        if ax.lines:  # outside the axes, to the right: never over the data
-            ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0)
-    axes[-1].set_xlabel("log time (s)")
-    fig.suptitle(f"replay of {Path(report['log']['path']).name}: actions, contributions, ConfAgg, latency per policy",
-                 fontsize=10)
-    fig.tight_layout()
-    fig.savefig(png, dpi=90, bbox_inches="tight")  # keeps the full action labels and the outside legends
-    plt.close(fig)
-
-
-def _action_label(decision: dict[str, Any]) -> str:
-    """The whole action name, one sensor setting per line (rgb 960x540@10Hz / thermal ... )."""
-    name = str(decision.get("action_name") or decision["action"])
-    parts = name.split(" ")
-    return "\n".join(" ".join(parts[i : i + 2]) for i in range(0, len(parts), 2))
-
-
-def _plot_actions(ax: Any, policy: str, entry: dict[str, Any], names: dict[str, int]) -> None:
-    """Action chosen at each decision, one step line per policy; y ticks name the actions."""
-    decisions = entry["decisions"]
-    if not decisions:
-        return
-    ys = [names.setdefault(_action_label(d), len(names)) for d in decisions]
-    ax.step([d["t"] for d in decisions], ys, where="post", label=policy, lw=1, marker=".", ms=4)
-    ax.set_yticks(range(len(names)), list(names), fontsize=6.5)
