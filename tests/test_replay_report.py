@@ -90,3 +90,44 @@ def test_reports_merge_per_policy_only_for_the_same_log(tmp_path: Path) -> None:
     assert list(merged["policies"]) == ["static", "heuristic"]
     path.write_text(json.dumps(merged))
     assert list(report_out.merge(path, log_b, "learn", {"x": 3})["policies"]) == ["learn"]
+
+
+def _long_learning_report() -> dict:
+    """Three policies over 60 s, the learner trying a new action at nearly every decision."""
+    rng = np.random.default_rng(7)
+    choices = {"rgb": ["1280x720", "960x540", "640x360"], "thermal": ["160x120", "320x240"],
+               "radar": ["range", "velocity"], "depth": ["640x480", "424x240"]}
+    policies = {}
+    for policy, moves in (("static", 0), ("heuristic", 6), ("learn", 60)):
+        configs, decisions = [], []
+        for k in range(max(moves, 1)):
+            t = k * 60 / max(moves, 1)
+            pick = {s: (str(rng.choice(v)), float(rng.choice([1, 5, 9.4, 15, 30]))) for s, v in choices.items()}
+            configs += [{"t": t, "sensor": s, "enabled": True, "rate_hz": r, "setting": v}
+                        for s, (v, r) in pick.items()]
+            name = " ".join(f"{s} {v}@{r:g}Hz" for s, (v, r) in pick.items())
+            decisions.append({"t": t, "state": [0], "action": k, "action_name": name, "reward": 0.0})
+        timeline = [{"t": t, "conf_agg": 0.5, "latency_ms": 90.0, "contributions": {"rgb": 0.6, "thermal": 0.4}}
+                    for t in np.arange(0, 60, 0.5)]
+        policies[policy] = {"decisions": decisions, "configs": configs, "timeline": timeline, "replayed_s": 60.0}
+    return {"log": {"path": "/x/rover.mcap"}, "policies": policies}
+
+
+def test_the_figures_action_panel_has_no_overlapping_labels(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """What a person reads in the action panel (its y labels and the labels in it) never overlaps."""
+    plt = pytest.importorskip("matplotlib.pyplot")
+    drawn = []
+    close = plt.close
+    monkeypatch.setattr(plt, "close", lambda fig=None: drawn.append(fig))
+    report_out.write(tmp_path / "r.json", _long_learning_report())
+    fig, = drawn
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    panel = fig.axes[0]
+    labels = [t for t in (*panel.get_yticklabels(), *panel.texts) if t.get_visible() and t.get_text()]
+    boxes = [t.get_window_extent(renderer) for t in labels]
+    overlaps = [(labels[i].get_text(), labels[j].get_text()) for i in range(len(boxes))
+                for j in range(i + 1, len(boxes)) if boxes[i].overlaps(boxes[j])]
+    close(fig)
+    assert len(labels) > 15 and not overlaps, overlaps[:3]
+    assert (tmp_path / "r.png").stat().st_size > 20_000

@@ -90,7 +90,7 @@ def _lane(ax: Any, row: int, entry: dict[str, Any], sensor: str, span: tuple[flo
     """One sensor's settings as bars, one colour per setting, labelled where the label fits."""
     from matplotlib import colormaps
 
-    palette = colormaps["Pastel1"].colors
+    palette = (*colormaps["Pastel1"].colors, *colormaps["Pastel2"].colors)  # 17 light colours: labels stay legible
     colours: dict[str, Any] = {}
     for start, stop, label in _stretches(entry, sensor, span[1]):
         colour = colours.setdefault(label, palette[len(colours) % len(palette)])
