@@ -51,10 +51,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--state-dir", metavar="DIR",
         help="Q-table and state (default: $STATE_DIRECTORY, else $XDG_STATE_HOME/respecd, else ~/.local/state/respecd)"
     )
-    parser.add_argument("--record", metavar="PATH", help="record the session to this MCAP file")
+    parser.add_argument("--record", metavar="PATH",
+                        help="record the session to this MCAP file (with --replay: the counterfactual session)")
     parser.add_argument("--foxglove", metavar="[HOST:]PORT",
                         help="serve the session live to Foxglove over its WebSocket protocol (off by default; "
-                             "loopback unless HOST is given, e.g. 0.0.0.0:8765)")
+                             "loopback unless HOST is given, e.g. 0.0.0.0:8765; with --replay: the counterfactual "
+                             "session, best at --speed 1)")
     parser.add_argument("--replay", metavar="LOG",
                         help="replay a recorded MCAP session, or a ROS bag (rosbag2 directory or ROS 1 .bag), "
                              "through the pipeline")
@@ -96,7 +98,6 @@ def main(args: argparse.Namespace) -> int:
 
 
 REPLAY_ONLY = ("speed", "report", "topics", "save_table")
-LIVE_ONLY = ("record", "foxglove")
 
 
 def check_flags(args: argparse.Namespace) -> None:
@@ -105,10 +106,6 @@ def check_flags(args: argparse.Namespace) -> None:
     if not args.replay and given:
         flags = ", ".join(f"--{n.replace('_', '-')}" for n in given)
         raise ConfigError(f"{flags}: only with --replay LOG (this runs the live daemon)")
-    given = [name for name in LIVE_ONLY if getattr(args, name, None) is not None]
-    if args.replay and given:
-        flags = ", ".join(f"--{n.replace('_', '-')}" for n in given)
-        raise ConfigError(f"{flags}: only for the live daemon, not with --replay")
 
 
 def check_outputs(args: argparse.Namespace) -> None:
@@ -122,7 +119,7 @@ def check_outputs(args: argparse.Namespace) -> None:
         if report is not None:
             check_output_file("--report", report.with_suffix(".png"))  # the timeline beside it
         check_output_file("--save-table", args.save_table, example="qtable.npz")  # save_table makes folders
-    elif args.record is not None:
+    if args.record is not None:
         problem = recording_problem(args.record)
         if problem:
             raise InputError(f"--record {problem}")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from respecd.clock import Clock
 
@@ -11,9 +11,11 @@ if TYPE_CHECKING:
     from respecd.record.recorder import Recorder
 
 
-def make_recorder(profile: Profile, path: str | None, clock: Clock, foxglove: str | None = None) -> Recorder | None:
+def make_recorder(profile: Profile, path: str | None, clock: Clock, foxglove: str | None = None,
+                  **options: Any) -> Recorder | None:
     """The recorder when a log (``path`` or the profile's ``recording``) or the live view
-    (``foxglove``, ``[HOST:]PORT``) is asked for; None when neither is."""
+    (``foxglove``, ``[HOST:]PORT``) is asked for; None when neither is. ``options``: the
+    ``Recorder``'s keyword arguments (a replay's ``lossless``, ``origin``, ``metadata``)."""
     to_file = path is not None or profile.recording.enabled
     if not to_file and foxglove is None:
         return None
@@ -27,4 +29,4 @@ def make_recorder(profile: Profile, path: str | None, clock: Clock, foxglove: st
     config = profile.recording
     if path is not None:
         config = config.model_copy(update={"enabled": True, "path": path})
-    return Recorder(config, profile, clock, live=live, to_file=to_file)
+    return Recorder(config, profile, clock, live=live, to_file=to_file, **options)

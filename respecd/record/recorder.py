@@ -88,6 +88,11 @@ class Recorder:
     ``drain_s``: how long ``close`` encodes queued frames before dropping the rest (the
     daemon's SIGTERM budget); None encodes them all, for a session on a simulated or
     lockstep clock, which can queue faster than real time and has no robot to let go.
+    ``lossless``: a full queue also makes the tap wait for the worker instead of dropping
+    (and ``close`` writes all that is queued); for a lockstep replay, whose clock is the log's
+    and may run ahead of the encoder (never for a robot, whose loop must not wait).
+    ``origin``: (session time, its log time in ns) instead of (now, the wall clock): a replay's
+    log keeps the times of the log it replays. ``metadata``: more MCAP metadata records.
     """
 
     def __init__(
@@ -98,6 +103,10 @@ class Recorder:
         live: Sink | None = None,
         to_file: bool = True,
         drain_s: float | None = DRAIN_S,
+        *,
+        lossless: bool = False,
+        origin: tuple[float, int] | None = None,
+        metadata: Mapping[str, Mapping[str, str]] | None = None,
     ) -> None:
         """``profile``: the Profile, or its JSON form (what the log stores)."""
         self.config = config
@@ -127,6 +136,11 @@ class Recorder:
         self._segments: SegmentWriter | None = None
         self._epoch_ns = 0
         self._t0 = 0.0
+        self._lossless = lossless
+        if lossless:
+            self._drain_s = None  # nothing queued is dropped at close either
+        self._origin = origin
+        self._metadata = {name: dict(fields) for name, fields in (metadata or {}).items()}
 
     @property
     def paths(self) -> list[Path]:
@@ -146,11 +160,10 @@ class Recorder:
     def start(self) -> Path | None:
         """Open the first segment (profile as metadata) and start the writer thread."""
         started = datetime.now(timezone.utc)
-        self._t0 = self.clock.now()
-        self._epoch_ns = time.time_ns()
+        self._t0, self._epoch_ns = self._origin or (self.clock.now(), time.time_ns())
         path = None
         if self._to_file:
-            meta = session_metadata(self.profile, started, self._t0, self._epoch_ns)
+            meta = {**session_metadata(self.profile, started, self._t0, self._epoch_ns), **self._metadata}
             self._segments = SegmentWriter(self.config, meta, started)
             path = self._segments.open(self._t0)
             self._sinks.append(self._segments)
@@ -194,12 +207,20 @@ class Recorder:
         if self._thread is None or self._closing:
             return
         with self._cond:
+            if self._lossless:
+                while len(self._queue) >= self.config.queue_size and self._worker_alive():
+                    self._cond.notify()  # the worker may be between batches: it has work now
+                    self._cond.wait(0.1)
             if len(self._queue) >= self.config.queue_size:
                 self._queue.popleft()
                 self.dropped += 1
             self._queue.append((kind, name, item))
             if len(self._queue) >= self._wake_at:
                 self._cond.notify()  # else the worker's batch_s timeout collects it
+
+    def _worker_alive(self) -> bool:
+        thread = self._thread
+        return not self._closing and thread is not None and thread.is_alive()
 
     async def close(self) -> None:
         """Drain what is queued, finish the file (summary + footer); safe to call twice."""
@@ -231,6 +252,8 @@ class Recorder:
                     if not self._queue:
                         break
                     kind, name, item = self._queue.popleft()
+                    if self._lossless:
+                        self._cond.notify()  # a tap may be waiting for room
                 if self._closing and kind in SENSOR_KINDS and time.monotonic() > self._drain_until:
                     self.dropped += 1  # shutting down and out of time: frames give way to finish()
                     continue

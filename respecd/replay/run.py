@@ -33,7 +33,7 @@ import structlog
 from respecd.drivers.replay import ReplayConfig
 from respecd.errors import InputError
 from respecd.record.reader import SessionLog, open_log
-from respecd.replay import detector, report_out
+from respecd.replay import detector, report_out, watch
 from respecd.replay import report as rpt
 from respecd.replay.ending import LogEnd
 from respecd.replay.latency import LatencyModel
@@ -50,7 +50,8 @@ def run_replay(args: argparse.Namespace, signals: Any = None) -> int:
     report = replay(args.replay, config=args.config, policy=args.policy, speed=str(getattr(args, "speed", None) or "1"),
                     seed=args.seed or 0, duration=args.duration, report=args.report, state_dir=args.state_dir,
                     save_table=getattr(args, "save_table", None), signals=signals,
-                    topics=getattr(args, "topics", None))
+                    topics=getattr(args, "topics", None), record=getattr(args, "record", None),
+                    foxglove=getattr(args, "foxglove", None))
     print(report_out.table(report))
     return 1 if _report_skipped(report) else 0
 
@@ -72,13 +73,15 @@ def _report_skipped(report: dict[str, Any]) -> bool:
 def replay(log_path: str | Path, *, config: str | Path | None = None, policy: str | None = None, speed: str = "max",
            seed: int = 0, duration: float | None = None, report: str | Path | None = None,
            state_dir: str | Path | None = None, save_table: str | Path | None = None,
-           signals: Any = None, topics: str | None = None, observe: Any = None) -> dict[str, Any]:
+           signals: Any = None, topics: str | None = None, observe: Any = None, record: str | None = None,
+           foxglove: str | None = None) -> dict[str, Any]:
     """Replay ``log_path`` under ``policy``; the report (``{"log", "policies"}``), also merged
     into the JSON at ``report`` (with a PNG timeline) when given. ``config``: a profile file
     to replay with instead of the one recorded in the log. ``signals``: a ``StopSignals``
     whose SIGTERM/SIGINT end the replay early (the report then covers what was replayed).
     ``topics``: for a ROS bag, which topic is which sensor (``rgb=/cam/image_raw,imu=...``).
-    ``observe``: called with the replay's ``Session`` before it starts (benchmarks attach hooks)."""
+    ``observe``: called with the replay's ``Session`` before it starts (benchmarks attach hooks).
+    ``record``/``foxglove``: the counterfactual session as a log / served live (``replay.watch``)."""
     if duration is not None and not duration > 0:
         raise InputError(f"--duration: expected a positive number of seconds, got {duration}")
     session = open_source(log_path, topics)
@@ -98,6 +101,7 @@ def replay(log_path: str | Path, *, config: str | Path | None = None, policy: st
     span = session.duration_s if duration is None else min(duration, session.duration_s)
     tables = _tables(profile, state_dir, save_table)
     exports = Path(state_dir) / "exported" if state_dir else None  # another runtime's graphs: a cache, not state
+    observe = watch.observer(session, record, foxglove, speed=speed, seed=seed, then=observe)
     entry = _Replay(profile, session, speed, t0, span, seed, tables, observe, exports).run(signals)
     entry.update(policy=profile.controller.policy, seed=seed, speed=speed, truncated=session.truncated)
     if hasattr(session, "skipped_report"):  # a ROS bag: its unreadable messages, per topic
