@@ -28,7 +28,7 @@ def plot(report: dict[str, Any], png: Path, plt: Any) -> None:
                              gridspec_kw={"height_ratios": [0.6 + 0.1 * len(lanes), 1, 1, 1]})
     span = _span(policies)
     for row, (policy, sensor) in enumerate(lanes):
-        _lane(axes[0], row, policies[policy], sensor, span, _bar_width_in(fig, axes[0]) / (span[1] - span[0]))
+        _lane(plt, axes[0], row, policies[policy], sensor, span, _bar_width_in(fig, axes[0]) / (span[1] - span[0]))
     axes[0].set_yticks(range(len(lanes)), [f"{p}: {s}" if len(policies) > 1 else s for p, s in lanes], fontsize=8)
     axes[0].set_ylim(len(lanes) - 0.5, -0.5)  # first lane on top
     for policy, entry in policies.items():
@@ -85,12 +85,10 @@ def _stretches(entry: dict[str, Any], sensor: str, end: float) -> list[tuple[flo
     return stretches
 
 
-def _lane(ax: Any, row: int, entry: dict[str, Any], sensor: str, span: tuple[float, float],
+def _lane(plt: Any, ax: Any, row: int, entry: dict[str, Any], sensor: str, span: tuple[float, float],
           inches_per_s: float) -> None:
     """One sensor's settings as bars, one colour per setting, labelled where the label fits."""
-    from matplotlib import colormaps
-
-    palette = (*colormaps["Pastel1"].colors, *colormaps["Pastel2"].colors)  # 17 light colours: labels stay legible
+    palette = [plt.colormaps[name](i) for name, n in (("Pastel1", 9), ("Pastel2", 8)) for i in range(n)]  # 17 light
     colours: dict[str, Any] = {}
     for start, stop, label in _stretches(entry, sensor, span[1]):
         colour = colours.setdefault(label, palette[len(colours) % len(palette)])
