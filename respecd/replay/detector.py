@@ -75,10 +75,10 @@ def provenance(config: str | Path | dict[str, Any] | None, session: Any) -> tupl
 
 
 def announce(weights: str) -> None:
-    """The first log line of a foreign camera bag replayed with the default profile."""
+    """The first log line of a ROS bag's camera images replayed with the default profile."""
     log.warning("replay.detector", weights=weights, trained_on="the simulator",
-                note=f"no --profile given: the default profile's detector ({weights}) runs on these real images, "
-                     "which it was not trained for", hint=REAL_IMAGES_HINT)
+                note=f"no --profile given: the default profile's detector ({weights}), trained on the simulator, "
+                     "runs on this bag's camera images", hint=REAL_IMAGES_HINT)
 
 
 def entry(perception: PerceptionConfig, profile_device: str | None, chosen_by: str,
@@ -92,7 +92,7 @@ def entry(perception: PerceptionConfig, profile_device: str | None, chosen_by: s
         described["device_note"] = usable_device(profile_device)[1]
     described.update(_checkpoint(perception.weights))
     if foreign:
-        described["note"] = "the default profile's detector, trained on the simulator, on a bag's real images"
+        described["note"] = "the default profile's detector, trained on the simulator, ran on this bag's camera images"
         described["hint"] = REAL_IMAGES_HINT
     return described
 
