@@ -137,7 +137,14 @@ async def _watch(port: int, topics: set[str]) -> dict[str, object]:
             data = await asyncio.wait_for(ws.recv(), 60)
             if isinstance(data, str):
                 message = json.loads(data)
-                if message.get("op") == "advertise":
+                if message.get("op") == "status" and "Unknown channel ID" in message.get("message", ""):
+                    # foxglove-sdk advertises a channel a moment before it takes subscriptions to it
+                    # (as in test_live_view): a client that is told so subscribes again
+                    channel_id = int(message["message"].rsplit(" ", 1)[1])
+                    await asyncio.sleep(0.2)
+                    await ws.send(json.dumps({"op": "subscribe",
+                                              "subscriptions": [{"id": channel_id, "channelId": channel_id}]}))
+                elif message.get("op") == "advertise":
                     channels.update({c["id"]: c for c in message["channels"] if c["topic"] in topics})
                     wanted = [{"id": cid, "channelId": cid} for cid in channels if cid not in subscribed]
                     subscribed.update({cid: channels[cid] for cid in channels})
