@@ -80,3 +80,42 @@ def test_a_real_camera_bag_names_its_detector_and_claims_no_f1(tmp_path: Path) -
     table = ran.stdout[ran.stdout.index("policy "):]
     assert "no ground truth" in table and "0.000" not in table
     assert "detector: builtin:sim-rover (sim-rover.pt) on cpu" in table
+
+
+FIXTURES = LLVIP.parents[1] / "rosbags" / "rosbag2_fixtures"
+
+
+@pytest.mark.parametrize(("storage", "messages", "topic"), [
+    ("rosbag2_py/test/resources/mcap/talker/talker.mcap", 20, "/topic [std_msgs/msg/String]"),
+    ("rosbag2_tests/resources/mcap/cdr_test/cdr_test_0.mcap", 7, "/array_topic [test_msgs/msg/Arrays]"),
+    ("rosbag2_py/test/resources/mcap/wbag/wbag_2.mcap", 1240, "AAA [std_msgs/msg/String]"),
+])
+def test_a_ros2_mcap_copied_alone_is_a_bag(tmp_path: Path, storage: str, messages: int, topic: str) -> None:
+    """What rosbag2 itself wrote, without its metadata.yaml: a bag for log info and --replay, never
+    a respecd log ('format 1', no sensors). These hold no sensor topic: the replay says so, naming them."""
+    alone = tmp_path / Path(storage).name
+    alone.write_bytes((FIXTURES / storage).read_bytes())
+    info = run_cli("log", "info", str(alone), "--json")
+    assert info.returncode == 0, info.stderr
+    described = json.loads(info.stdout)
+    assert described["kind"] == "rosbag2" and described["messages"] == messages
+    ran = run_cli("--replay", str(alone), "--speed", "max")
+    assert ran.returncode == 2 and "Traceback" not in ran.stderr
+    assert f"{alone}: no sensor_msgs Image/CompressedImage/PointCloud2/Imu topic to replay" in ran.stderr
+    assert topic in ran.stderr and "format 1" not in ran.stderr
+
+
+@pytest.mark.slow
+def test_a_camera_bags_mcap_copied_alone_replays_with_and_without_topics(tmp_path: Path) -> None:
+    bag = write_camera_bag(tmp_path / "bag", photos(6), hz=4)
+    alone = tmp_path / "alone" / "street.mcap"
+    alone.parent.mkdir()
+    alone.write_bytes(next(bag.glob("*.mcap")).read_bytes())
+    for topics in ((), ("--topics", "rgb=/camera/color/image_raw/compressed")):
+        report = tmp_path / f"r{len(topics)}.json"
+        ran = run_cli("--replay", str(alone), *topics, "--speed", "max", "--policy", "static", "--report", str(report))
+        assert ran.returncode == 0, ran.stderr[-2000:]
+        assert ("guessed from message types: --topics rgb=/camera/color/image_raw/compressed" in ran.stderr) == \
+            (not topics)
+        entry = json.loads(report.read_text())["policies"]["static"]
+        assert entry["compute"]["frames"] == {"rgb": 6} and entry["compute"]["percepts"] >= 1
