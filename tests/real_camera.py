@@ -49,7 +49,9 @@ def write_log(path: Path, profile: dict[str, Any], images: list[np.ndarray], hz:
     from respecd.record.recorder import Recorder
 
     async def record() -> None:
-        recorder = Recorder(RecordingConfig(enabled=True, path=str(path)), profile, clock := ManualClock())
+        # drain_s None: close encodes every queued frame (the default gives a robot's SIGTERM budget)
+        recorder = Recorder(RecordingConfig(enabled=True, path=str(path)), profile, clock := ManualClock(),
+                            drain_s=None)
         recorder.start()
         name = profile["sensors"][0]["name"]
         for i, image in enumerate(images):

@@ -240,8 +240,9 @@ def test_portable_check_config_passes_the_jetson_profile_and_names_what_it_left_
 
 
 def test_portable_check_skips_the_robots_files_but_not_the_profiles_mistakes(tmp_path: Path) -> None:
-    robot = _profile(tmp_path, "perception:\n  weights: /var/lib/respecd/mine.pt\n  device: cuda:1\n"
-                     "recording:\n  enabled: true\n  path: /var/lib/respecd/rec/r-{time}.mcap\n")
+    robot = _profile(tmp_path, "perception:\n  weights: /var/lib/respecd/mine.pt\n  device: cuda:1\n")
+    robot.write_text(robot.read_text().replace(  # the profile's own recording section, switched on
+        "recording:\n", "recording:\n  enabled: true\n  path: /var/lib/respecd/rec/r-{time}.mcap\n", 1))
     result = _run("check-config", "--portable", str(robot))
     assert result.returncode == 0, result.stderr
     assert "perception.weights: /var/lib/respecd/mine.pt (not on this machine)" in result.stdout
