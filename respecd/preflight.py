@@ -57,9 +57,8 @@ def check_portable(loaded: LoadedProfile) -> tuple[list[str], list[str]]:
     else:
         problems += _weights(loaded)
     if perception.enabled:
-        here = device_problem(perception.device)
-        if here and NOT_A_DEVICE in here:  # a typo is the profile's problem on every machine
-            problems.append(_at(loaded, ("perception", "device"), here))
+        typo, here = _portable_device(loaded)
+        problems += typo
         skipped.append(f"perception.device: {perception.device!r}" + (f" (here: {here})" if here else ""))
     for line in _sensor_files(loaded):
         skipped.append(f"sensor file {_unlocated(line)}")
@@ -69,6 +68,24 @@ def check_portable(loaded: LoadedProfile) -> tuple[list[str], list[str]]:
     if loaded.model.controller.enabled:
         skipped.append("the state directory and its Q-table")
     return problems, skipped
+
+
+def _portable_device(loaded: LoadedProfile) -> tuple[list[str], str | None]:
+    """(a device no machine has: the profile's problem, what this machine says of the device). A
+    device the runtime never names (``cdua``) is wrong on the robot too; one this machine lacks is not."""
+    perception = loaded.model.perception
+    if perception.runtime == "torch":
+        here = device_problem(perception.device)
+        typo = here is not None and NOT_A_DEVICE in here
+    else:
+        from respecd.perception import runtimes
+
+        try:
+            runtimes.backend(perception.runtime).parse_device(perception.device)
+        except ConfigError as err:
+            return [_at(loaded, ("perception", "device"), str(err).removeprefix("perception.device: "))], None
+        here, typo = runtimes.problem(perception), False
+    return ([_at(loaded, ("perception", "device"), str(here))] if typo else []), here
 
 
 def _unlocated(line: str) -> str:

@@ -239,6 +239,19 @@ def test_portable_check_config_passes_the_jetson_profile_and_names_what_it_left_
         assert "(here: 'cuda' cannot be used: this torch" in result.stdout  # what the plain check would say
 
 
+def test_portable_check_takes_each_runtimes_own_devices(tmp_path: Path) -> None:
+    """tensorrt and gpu are devices of onnxruntime and openvino, not of torch: a machine without them
+    skips the check; a device the runtime never names is the profile's mistake."""
+    for runtime, device in [("onnxruntime", "tensorrt"), ("openvino", "gpu")]:
+        robot = _profile(tmp_path, f"perception:\n  runtime: {runtime}\n  device: {device}\n  precision: f16\n")
+        result = _run("check-config", "--portable", str(robot))
+        assert result.returncode == 0, result.stderr
+        assert f"perception.device: '{device}'" in result.stdout
+    typo = _profile(tmp_path, "perception:\n  runtime: openvino\n  device: cuda\n", "typo.yaml")
+    result = _run("check-config", "--portable", str(typo))
+    assert result.returncode == 2 and "'cuda' is not a device of runtime openvino" in result.stderr
+
+
 def test_portable_check_skips_the_robots_files_but_not_the_profiles_mistakes(tmp_path: Path) -> None:
     robot = _profile(tmp_path, "perception:\n  weights: /var/lib/respecd/mine.pt\n  device: cuda:1\n")
     robot.write_text(robot.read_text().replace(  # the profile's own recording section, switched on

@@ -14,6 +14,8 @@ import yaml
 from conftest import run_cli
 from real_camera import LLVIP, photos, write_camera_bag, write_log
 
+from respecd.errors import ConfigError
+
 REPO = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.skipif(not LLVIP.is_dir(), reason=f"shared photos not found at {LLVIP}")
@@ -57,6 +59,25 @@ def test_a_device_typo_is_a_profile_error_for_a_replay_too(tmp_path: Path) -> No
     ran = run_cli("--replay", str(log), "--speed", "max")
     assert ran.returncode == 2 and "perception.device: 'cdua' is not a torch device" in ran.stderr
     assert "Traceback" not in ran.stderr
+
+
+@pytest.mark.parametrize("asked", [{"runtime": "onnxruntime", "device": "tensorrt", "precision": "f16"},
+                                   {"runtime": "openvino", "device": "gpu:1", "precision": "f16"}])
+def test_a_runtime_profile_replays_with_what_this_machine_has(asked: dict) -> None:
+    """A Jetson's TensorRT (or an Intel GPU's OpenVINO) profile: the replay runs that runtime on the
+    CPU in f32 where it is installed, else torch on the CPU, and the report names both placements."""
+    from respecd.perception.config import PerceptionConfig
+    from respecd.perception.runtimes import problem
+    from respecd.replay import detector
+
+    placed = detector.place(dict(asked))
+    assert placed["device"] == "cpu" and placed["precision"] == "f32"
+    assert problem(PerceptionConfig.model_validate(placed)) is None  # it runs here
+    described = detector.entry(PerceptionConfig.model_validate(placed), asked, "--profile robot.yaml")
+    assert described["profile_device"] == asked["device"] and described["profile_precision"] == "f16"
+    assert described["device_note"] and described["runtime"] == placed["runtime"]
+    with pytest.raises(ConfigError, match="'cuda' is not a device of runtime openvino"):
+        detector.place({"runtime": "openvino", "device": "cuda"})  # wrong on the robot too
 
 
 @pytest.mark.slow

@@ -4,6 +4,8 @@ A replay studies a robot's session wherever the log is opened: a profile written
 Jetson (``device: cuda``) replays on a laptop's CPU. The live daemon refuses a device it
 cannot use (``respecd.preflight``: its latency and load would describe another machine); a
 replay runs the detector on the CPU instead and says so once in the log and in the report.
+A profile's ``perception.runtime`` (ONNX Runtime on TensorRT, OpenVINO on a GPU) runs here on
+the CPU in f32 when that runtime is installed, else through torch on the CPU.
 A lockstep replay's latencies are modelled from the log, so the controller decides as it
 would have on the robot whichever device runs the detector here.
 
@@ -31,6 +33,7 @@ log = structlog.get_logger(__name__)
 REAL_IMAGES_HINT = ("for real camera images pass --profile builtin:spec-rover (builtin:rgbt: real-photo RGB and "
                     "thermal backbones) or a profile naming your own checkpoint in perception.weights")
 CAMERAS = ("rgb", "thermal")
+PLACEMENT = {"runtime": "torch", "device": "cpu", "precision": "f32"}  # perception's fields and defaults
 
 
 def usable_device(requested: str) -> tuple[str, str | None]:
@@ -44,19 +47,52 @@ def usable_device(requested: str) -> tuple[str, str | None]:
     return ("cpu", problem) if problem else (requested, None)
 
 
+def usable_runtime(section: dict[str, Any]) -> tuple[dict[str, str], str | None]:
+    """(runtime, device, precision) a replay runs a non-torch ``perception.runtime`` with: the
+    profile's when this machine has them, else that runtime on the CPU in f32, else torch on the
+    CPU (same detections in f32: docs/DEPLOY.md), and why. A device the runtime never names is a
+    profile error."""
+    from respecd.perception.config import PerceptionConfig
+    from respecd.perception.runtimes import backend, problem
+
+    wanted = {k: str(section.get(k, d)) for k, d in PLACEMENT.items()}
+    backend(wanted["runtime"]).parse_device(wanted["device"])  # ConfigError: wrong on the robot too
+    try:
+        config = PerceptionConfig.model_validate(section)
+    except ValueError:
+        return wanted, None  # the profile's own validation says what is wrong
+    why = problem(config)
+    if why is None:
+        return wanted, None
+    on_cpu = {**wanted, "device": "cpu", "precision": "f32"}
+    if problem(config.model_copy(update=on_cpu)) is None:
+        return on_cpu, why
+    return {"runtime": "torch", "device": "cpu", "precision": "f32"}, why
+
+
+def placement(section: dict[str, Any]) -> tuple[dict[str, str], str | None]:
+    """What the detector runs with here (runtime, device, precision) and why it differs from the
+    profile's (None when it does not)."""
+    wanted = {k: str(section.get(k, d)) for k, d in PLACEMENT.items()}
+    if wanted["runtime"] != "torch":
+        return usable_runtime(section)
+    device, why = usable_device(wanted["device"])
+    return {**wanted, "device": device}, why
+
+
 def place(perception: dict[str, Any] | None) -> dict[str, Any]:
-    """The profile's ``perception`` section with a device this machine can use (logged once
-    when it differs from the profile's)."""
+    """The profile's ``perception`` section with a runtime and device this machine can use
+    (logged once when they differ from the profile's)."""
     section = dict(perception or {})
     if not section.get("enabled", True):
         return section
-    requested = str(section.get("device", "cpu"))
-    device, why = usable_device(requested)
-    if device != requested:
-        log.warning("replay.device", profile_device=requested, device=device, reason=why,
+    chosen, why = placement(section)
+    if why is not None:
+        profile = {f"profile_{k}": str(section.get(k, d)) for k, d in PLACEMENT.items()}
+        log.warning("replay.device", **profile, **chosen, reason=why,
                     note="the detector runs on this machine's CPU; a lockstep replay's latencies are "
                          "modelled from the log, so the decisions do not change")
-        section["device"] = device
+        section.update(chosen)
     return section
 
 
@@ -81,18 +117,23 @@ def announce(weights: str) -> None:
                      "runs on this bag's camera images", hint=REAL_IMAGES_HINT)
 
 
-def entry(perception: PerceptionConfig, profile_device: str | None, chosen_by: str,
+def entry(perception: PerceptionConfig, profile_perception: dict[str, Any] | None, chosen_by: str,
           foreign: bool = False) -> dict[str, Any]:
-    """The report's ``detector``: the checkpoint that ran (file, sha256, card), the device, who chose it."""
+    """The report's ``detector``: the checkpoint that ran (file, sha256, card), the runtime and
+    device, who chose it, and the profile's runtime/device where the replay could not use them."""
     if not perception.enabled:
         return {"enabled": False, "chosen_by": chosen_by}
-    described: dict[str, Any] = {"weights": perception.weights, "device": perception.device, "chosen_by": chosen_by}
-    if profile_device is not None and profile_device != perception.device:
-        described["profile_device"] = profile_device
-        described["device_note"] = usable_device(profile_device)[1]
+    described: dict[str, Any] = {"weights": perception.weights, "runtime": perception.runtime,
+                                 "device": perception.device, "precision": perception.precision,
+                                 "chosen_by": chosen_by}
+    asked = profile_perception or {}
+    wanted = {k: str(asked.get(k, d)) for k, d in PLACEMENT.items()}
+    if any(wanted[k] != described[k] for k in PLACEMENT):
+        described.update({f"profile_{k}": v for k, v in wanted.items() if v != described[k]})
+        described["device_note"] = placement(asked)[1]
     described.update(_checkpoint(perception.weights))
     if foreign:
-        described["note"] = "the default profile's detector, trained on the simulator, ran on this bag's camera images"
+        described["note"] = "the default profile's detector, trained on the simulator, on a bag's real images"
         described["hint"] = REAL_IMAGES_HINT
     return described
 

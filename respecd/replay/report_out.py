@@ -115,7 +115,10 @@ def _detector_lines(report: dict[str, Any]) -> list[str]:
         if d.get("enabled") is False:
             continue
         line = f"detector: {d['weights']}" + (f" ({d['checkpoint']})" if "checkpoint" in d else "")
-        line += f" on {d['device']}" + (f", not the profile's {d['profile_device']}" if "profile_device" in d else "")
+        runtime = d.get("runtime", "torch")
+        line += f" on {d['device']}" + (f" through {runtime}" if runtime != "torch" else "")
+        asked = [f"{d[f'profile_{k}']}" for k in ("runtime", "device", "precision") if f"profile_{k}" in d]
+        line += f", not the profile's {' '.join(asked)}" if asked else ""
         lines.append(f"{line}; chosen by {d['chosen_by']}")
         lines += [f"  {d[k]}" for k in ("note", "hint") if k in d]
     return lines

@@ -106,8 +106,7 @@ def replay(log_path: str | Path, *, config: str | Path | None = None, policy: st
     entry.update(policy=profile.controller.policy, seed=seed, speed=speed, truncated=session.truncated)
     if hasattr(session, "skipped_report"):  # a ROS bag: its unreadable messages, per topic
         entry["skipped"] = session.skipped_report()
-    entry["detector"] = detector.entry(profile.perception, (base.get("perception") or {}).get("device"), chosen_by,
-                                       foreign)
+    entry["detector"] = detector.entry(profile.perception, base.get("perception"), chosen_by, foreign)
     return _emit(report, session, entry)
 
 
