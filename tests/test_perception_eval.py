@@ -68,7 +68,8 @@ def test_eval_command_on_real_llvip_pairs(shared_data, tmp_path: Path, capsys) -
     assert code == 0
     report = json.loads((out / "eval.json").read_text())
     assert report["frames"]["llvip_pairs"] == 6  # the six annotated pairs
-    assert set(report["map"]["llvip_pairs"]) == {"none", "no_rgb", "no_thermal", "no_radar", "rgb_only"}
+    assert set(report["map"]["llvip_pairs"]) == {"none", "no_rgb", "no_thermal", "no_radar", "rgb_only",
+                                                 "thermal_only", "radar_only"}
     assert set(report["ablation"]["llvip_pairs"]) == set(report["map"]["llvip_pairs"])
     assert report["map50"] == report["map"]["all"]["none"]["map50"]  # the real-folder top-level keys
     assert isinstance(report["detections"], int) and isinstance(report["detections_without_rgb"], int)
@@ -110,7 +111,8 @@ def test_eval_command_on_the_simulator_writes_every_key(tmp_path: Path) -> None:
         assert set(row["delivered_map50"]) == {"all", *conditions}
         assert 0 <= row["delivered_map50"]["all"] <= 1
     assert set(report["ablation"]) == {"all", *conditions}
-    assert set(report["ablation"]["radar-only"]) == {"none", "no_rgb", "no_thermal", "no_radar", "rgb_only"}
+    assert set(report["ablation"]["radar-only"]) == {"none", "no_rgb", "no_thermal", "no_radar", "rgb_only",
+                                                     "thermal_only", "radar_only"}
     assert report["frames"]["radar-only"] == 2 and report["frames"]["all"] == 14  # 7 scenarios x 2 instants
     assert report["attribution"] == {"method": "ablation", "rgb": "640x360", "score_threshold": 0.25, "targets": 5}
     assert all(k in report for k in ("dependence", "sufficiency", "shapley", "lost_when_off"))  # {} if none attributed
@@ -193,3 +195,22 @@ def test_eval_command_rejects_a_bad_checkpoint(tmp_path: Path, capsys) -> None:
     bad.write_bytes(b"\x00" * 10)
     assert cli_main(["eval", "--weights", str(bad), "--out", str(tmp_path)]) == 2
     assert "bad.pt: not a torch checkpoint: it looks like" in capsys.readouterr().err
+
+
+def test_each_sensor_alone_is_an_ablation_and_one_pass_serves_equal_subsets() -> None:
+    from respecd.lab.detector.data import Sample
+    from respecd.lab.detector.evaluate import Evaluation, ablations
+    from respecd.perception.config import PerceptionConfig
+    from respecd.perception.detector import FusionDetector
+
+    three = ablations(("thermal", "radar"))
+    assert three["thermal_only"] == ("rgb", "radar") and three["radar_only"] == ("rgb", "thermal")
+    assert three["rgb_only"] == ("thermal", "radar")
+    assert ablations(("thermal",))["thermal_only"] == ablations(("thermal",))["no_rgb"] == ("rgb",)
+    spec = ModelSpec(**{**TINY.model_dump(), "aux_modalities": ("thermal",)})
+    detector = FusionDetector(FusionNet(spec), PerceptionConfig(model=spec, score_threshold=0.01))
+    evaluation = Evaluation(detector, 0.0)
+    sample = Sample(np.random.default_rng(0).integers(0, 255, (4, 64, 96), dtype=np.uint8), np.ones(1, np.float32),
+                    np.array([[10, 10, 40, 60]], np.float32), np.zeros(1, bool))
+    evaluation.add_attributed(sample, ["all"])
+    assert evaluation.ablation["all"]["thermal_only"][0] is evaluation.ablation["all"]["no_rgb"][0]

@@ -50,11 +50,14 @@ OPERATING_THRESHOLD = PerceptionConfig().score_threshold  # the daemon's: what i
 
 
 def ablations(aux: tuple[str, ...]) -> dict[str, tuple[str, ...]]:
-    """Name -> modalities removed: all on, each one off, and RGB alone."""
+    """Name -> modalities removed: all on, each one off, and each one alone (with one aux sensor,
+    ``thermal_only`` is ``no_rgb``: the same pass)."""
     out: dict[str, tuple[str, ...]] = {"none": ()}
     for name in ("rgb", *aux):
         out[f"no_{name}"] = (name,)
     out["rgb_only"] = tuple(aux)
+    for name in aux:
+        out[f"{name}_only"] = ("rgb", *(m for m in aux if m != name))
     return out
 
 
@@ -128,13 +131,15 @@ class Evaluation:
         k = 0 if result.ranking is None else len(result.ranking)
         targets, confidences = result.detections[0][:k].numpy(), result.detections[1][:k].numpy()
         after = np.zeros((k, len(result.modalities)))
+        passes: dict[frozenset[str], ImageResult] = {}  # one pass per set of sensors off
+        if self._all_on[0] == id(sample) and self._all_on[1] is not None:
+            passes[frozenset()] = self._all_on[1]
         for name, removed in ablations(self.aux).items():
-            reused = self._all_on[1] if not removed and self._all_on[0] == id(sample) else None
-            if reused is not None:
-                image = reused
-            else:
+            image = passes.get(frozenset(removed))
+            if image is None:
                 boxes, scores, _ = self._predict(*sample_input(sample, self.aux, removed))
-                image = ImageResult(boxes, scores, sample.boxes, sample.ignore)
+                image = passes[frozenset(removed)] = ImageResult(boxes, scores, sample.boxes, sample.ignore)
+            boxes, scores = image.pred_boxes, image.pred_scores
             for cond in conditions:
                 self.ablation[cond][name].append(image)
             if len(removed) == 1 and k:
