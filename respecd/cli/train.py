@@ -51,6 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="Darknet nets: backbone 2 sees the aux planes at this scale (default 1.0)")
     parser.add_argument("--freeze", default="",
                         help="comma-separated parts kept fixed, e.g. rgb,head,fuse or fuse.*.rgb")
+    parser.add_argument("--reinit", default="",
+                        help="comma-separated parts of --init's net given fresh weights first, e.g. aux (a new "
+                             "thermal branch; with --epochs 0: a checkpoint whose thermal path is damaged)")
     parser.add_argument("--patience", type=non_negative_int, default=0,
                         help="folder data: stop after N epochs without a better validation mAP@0.5 (0: never)")
     parser.add_argument("--modality", choices=("auto", "rgb", "thermal"), default="auto",
@@ -107,7 +110,8 @@ def main(args: argparse.Namespace) -> int:
         sim_batch=(args.batch or 10) if sim else min(args.batch or 10, 10), lr=args.lr, seed=args.seed,
         steps_per_epoch=args.steps, threads=args.threads, resume=args.resume,
         progress=not args.quiet, augment=augment, init=args.init,
-        freeze=tuple(p for p in args.freeze.split(",") if p), patience=args.patience, modality=args.modality,
+        freeze=tuple(p for p in args.freeze.split(",") if p), reinit=tuple(p for p in args.reinit.split(",") if p),
+        patience=args.patience, modality=args.modality,
         data_scale=args.scale, val_scale=args.val_scale, val_limit=args.val_limit,
         scenario_weights=_scenario_weights(args.scenario_weight),
         resolution_weights=_resolution_weights(args.resolution_weight), sim_mix=args.sim_mix,
@@ -188,6 +192,8 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError(f"--sim-mix {args.sim_mix}: expected a share 0 <= P < 1 of steps, with --data a folder")
     if args.out.suffix != ".pt":
         raise InputError(f"--out {args.out}: expected a .pt file name")
+    if args.reinit and not args.init:
+        raise InputError(f"--reinit {args.reinit}: re-initialises parts of --init's net; give --init")
 
 
 def _with_radar_alone(augment: AugmentConfig, weight: float) -> AugmentConfig:

@@ -3,6 +3,7 @@
 * ``--init`` names a respecd checkpoint (``builtin:NAME`` or a path) or a Darknet ``.weights``
   file (its cfg must be packaged, see ``darknet_fusion.cfg_text``): training starts there.
   ``RGB.weights,AUX.weights`` takes backbone 2 from another Darknet model (``aux_backbone``).
+* ``--reinit aux,...`` gives those parts fresh weights first (module paths as ``--freeze``).
 * ``--freeze rgb,head,...`` keeps those parts of the net as they are (no gradient, batch-norm
   statistics untouched), e.g. the RGB backbone and the head of a pretrained detector while
   backbone 2 learns thermal. A part is a module path, ``*`` matching one name (``fuse.*.rgb``).
@@ -67,6 +68,17 @@ def freeze(model: nn.Module, parts: tuple[str, ...]) -> None:
         for p in module.parameters():
             p.requires_grad_(False)
     setattr(model, "_frozen_parts", tuple(parts))  # noqa: B010 (read back by keep_frozen_eval)
+
+
+def reinit(model: checkpoint.Net, parts: tuple[str, ...], seed: int = 0) -> None:
+    """Fresh weights for the named parts, as a new net of the same spec (seeded) has them: a new thermal
+    branch under a pretrained RGB detector, or a thermal path damaged on purpose (``respecd adapt``'s test)."""
+    if not parts:
+        return
+    torch.manual_seed(seed)
+    fresh = checkpoint.build(model.spec)
+    for module, new in zip(frozen_modules(model, parts), frozen_modules(fresh, parts), strict=True):
+        module.load_state_dict(new.state_dict())
 
 
 def keep_frozen_eval(model: nn.Module) -> None:

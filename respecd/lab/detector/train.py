@@ -14,7 +14,7 @@ from __future__ import annotations
 import copy
 import math
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -26,7 +26,7 @@ from torch import nn
 
 from respecd.errors import InputError
 from respecd.lab.detector.augment import AugmentConfig, augment, collate
-from respecd.lab.detector.finetune import finite, freeze, initial_model, keep_frozen_eval, validation_map
+from respecd.lab.detector.finetune import finite, freeze, initial_model, keep_frozen_eval, reinit, validation_map
 from respecd.lab.detector.loss import detection_loss
 from respecd.lab.detector.yolo_loss import yolo_loss
 from respecd.perception import checkpoint
@@ -58,6 +58,7 @@ class TrainConfig:
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     init: str | None = None  # checkpoint or Darknet .weights to start from (finetune.initial_model)
     freeze: tuple[str, ...] = ()  # top-level parts kept as they are (e.g. "rgb", "head")
+    reinit: tuple[str, ...] = ()  # parts given fresh weights before training (e.g. "aux")
     patience: int = 0  # folder data: stop after this many epochs without a better val mAP (0: never)
     modality: str = "auto"  # folder data whose images are one modality: rgb, thermal or auto
     data_scale: float = 0.5  # folder data: images decoded at this scale (LLVIP 1280x1024 -> 640x512)
@@ -67,6 +68,7 @@ class TrainConfig:
     resolution_weights: dict[tuple[int, int], float] | None = None  # sim: RGB size draw weights (None: uniform)
     sim_mix: float = 0.0  # folder data: share of steps drawn from the simulator instead (0: folder only)
     precision: str = "fp32"  # "bf16": forward and backward under CPU autocast (weights and loss stay fp32)
+    extra_loss: Callable[[nn.Module], torch.Tensor] | None = None  # a term added to every step's loss (adapt.py)
 
 
 Batch = tuple[list["Sample"], tuple[int, int]]  # one step's samples, (width, height) of its input
@@ -183,15 +185,17 @@ def lr_at(step: int, total: int, base: float) -> float:
     return base * (0.05 + 0.95 * 0.5 * (1 + math.cos(math.pi * progress)))
 
 
-def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
-    """Train from scratch (or resume); returns a summary with the final file paths."""
+def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None, data: tuple | None = None) -> dict:
+    """Train from scratch (or resume); returns a summary with the final file paths. ``data``: the
+    batches' source and the validation samples, from the caller (``respecd adapt``) instead of ``cfg.data``."""
     pcfg = pcfg or PerceptionConfig()
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     started, cpu_started = time.perf_counter(), time.process_time()
     model = initial_model(cfg.init, pcfg.model)
+    reinit(model, cfg.reinit, cfg.seed)
     pcfg = pcfg.model_copy(update={"model": model.spec})  # the data follows the net (e.g. its aux modalities)
-    pool, val = build_pool(cfg, pcfg)
+    pool, val = data if data is not None else build_pool(cfg, pcfg)
     freeze(model, cfg.freeze)
     to_training_layout(model).train()
     keep_frozen_eval(model)
@@ -225,6 +229,7 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None) -> dict:
         "epoch_loss": [(r["epoch"], r["loss"]) for r in curve],  # for the CLI's curve
         "init": cfg.init,
         "freeze": list(cfg.freeze),
+        "reinit": list(cfg.reinit),
         "curve": curve,
         "best_epoch": best,
     }
@@ -304,15 +309,15 @@ def _epoch(model: checkpoint.Net, ema: EMA, opt: torch.optim.Optimizer, batches:
         step = epoch * steps + i
         for group in opt.param_groups:
             group["lr"] = lr_at(step, total, cfg.lr)
-        loss, parts = train_step(model, opt, ema, next(batches), bf16)
+        loss, parts = train_step(model, opt, ema, next(batches), bf16, cfg.extra_loss)
         running = 0.9 * running + 0.1 * float(loss.detach()) if i else float(loss.detach())
         if hasattr(bar, "set_postfix"):
             bar.set_postfix(loss=f"{running:.3f}", box=f"{parts['box']:.3f}", cls=f"{parts['cls']:.3f}")
     return running
 
 
-def train_step(model: checkpoint.Net, opt: torch.optim.Optimizer, ema: EMA, batch: Batch,
-               bf16: bool = False) -> tuple[torch.Tensor, dict[str, float]]:
+def train_step(model: checkpoint.Net, opt: torch.optim.Optimizer, ema: EMA, batch: Batch, bf16: bool = False,
+               extra_loss: Callable[[nn.Module], torch.Tensor] | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """One optimizer step on one batch (forward under bf16 autocast when asked); the loss and its parts."""
     samples, (w, h) = batch
     x, presence, boxes, labels, mask = collate(samples)
@@ -320,6 +325,8 @@ def train_step(model: checkpoint.Net, opt: torch.optim.Optimizer, ema: EMA, batc
     with torch.autocast("cpu", dtype=torch.bfloat16, enabled=bf16):
         raw = model(x, presence)
     loss, parts = net_loss(model, _as_float(raw) if bf16 else raw, (h, w), boxes, labels, mask)
+    if extra_loss is not None:
+        loss = loss + extra_loss(model)
     opt.zero_grad(set_to_none=True)
     loss.backward()
     nn.utils.clip_grad_norm_(model.parameters(), 10.0)
