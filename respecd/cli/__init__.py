@@ -24,6 +24,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                    "is worth (fixed), a table with one sensor pinned (pin), static below its maximum (probe), "
                    "detector latency (latency), the winning table (choose)"),
     "train": ("respecd.cli.train", "train the fusion detector on the simulated rover or an LLVIP-layout folder"),
+    "adapt": ("respecd.cli.adapt", "learn the detector's thermal path from recorded sessions: the RGB detector's "
+              "confident boxes in good light teach it, no labels"),
     "eval": ("respecd.cli.eval", "mAP per RGB resolution and with each sensor off, contributions, faithfulness"),
     "calibrate": ("respecd.cli.calibrate", "fit the detector's confidence calibration per RGB size into a checkpoint"),
     "radar-profile": ("respecd.cli.radar_profile", "print the radar chirp cfg and its four figures"),
