@@ -30,6 +30,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")
 RGB_CAL = {"intrinsics": {"fx": 60.0, "fy": 60.0, "cx": 32.0, "cy": 18.0, "width": 64, "height": 36}}
 THERMAL_CAL = {"intrinsics": {"fx": 15.0, "fy": 20.0, "cx": 8.0, "cy": 6.0, "width": 16, "height": 12},
                "extrinsics": {"translation_m": [0.05, 0.0, 0.0]}}
+TINY = {"rgb_widths": (8, 8, 16, 16, 16), "aux_widths": (8, 8, 8, 8, 8), "neck_widths": (16, 16, 16)}
 
 
 def sensor(name: str, modality: str, calibration: dict | None = None) -> dict:
@@ -268,7 +269,7 @@ def test_adapt_runs_on_a_session_of_real_pairs(shared_data: Path, tmp_path: Path
 def test_reinit_gives_only_the_named_parts_fresh_weights(tmp_path: Path, cli) -> None:
     from respecd.perception.config import ModelSpec
 
-    spec = ModelSpec(rgb_widths=(8, 8, 16, 16, 16), aux_widths=(8, 8, 8, 8, 8), neck_widths=(16, 16, 16))
+    spec = ModelSpec(**TINY)
     start, damaged = tmp_path / "start.pt", tmp_path / "damaged.pt"
     torch.manual_seed(5)
     checkpoint.save(start, checkpoint.build(spec))
@@ -281,3 +282,55 @@ def test_reinit_gives_only_the_named_parts_fresh_weights(tmp_path: Path, cli) ->
     assert any(name.startswith("aux.p5") for name in moved)  # the whole part, not its first layer only
     ran = cli("train", "--data", "sim", "--reinit", "aux", "--out", str(tmp_path / "x.pt"), "--no-progress")
     assert ran.returncode == 2 and "--reinit aux: re-initialises parts of --init's net; give --init" in ran.stderr
+
+
+# --- what is learned, and what is kept --------------------------------------------------------------------------------
+
+
+def test_frames_are_aligned_with_the_recorded_calibration(good_log: Path, tmp_path: Path) -> None:
+    from respecd.lab.detector.adapt import AdaptConfig, label_frames
+    from respecd.perception.align import Aligner
+    from respecd.perception.config import ModelSpec, PerceptionConfig
+
+    spec = ModelSpec(**TINY, aux_modalities=("thermal",))
+    weights = tmp_path / "tiny.pt"
+    checkpoint.save(weights, checkpoint.build(spec))
+    rec = open_recording(good_log)
+    cfg = AdaptConfig(logs=(good_log,), out=tmp_path / "a.pt", weights=str(weights), confident=0.0, unsure=0.0,
+                      every_s=0.5, progress=False)
+    frames = label_frames([rec], spec, cfg)
+    assert frames.seen == 5 and len(frames.samples) == 5 and frames.keys == [(0, 0)] * 5
+    first = next(paired_frames(rec, ("thermal",), 0.5, 0.1))
+    expected = Aligner(PerceptionConfig(model=spec), rec.calibration).align(first)
+    assert np.array_equal(frames.samples[0].planes[3], np.round(expected.tensor[3, :36, :64] * 255).astype(np.uint8))
+    plain = Aligner(PerceptionConfig(model=spec)).align(first)  # no calibration: a plain resize, which differs
+    assert not np.array_equal(frames.samples[0].planes[3], np.round(plain.tensor[3, :36, :64] * 255).astype(np.uint8))
+    dark = label_frames([rec], spec, AdaptConfig(logs=(good_log,), out=tmp_path / "a.pt", weights=str(weights),
+                                                 min_light=250.0, every_s=0.5, progress=False))
+    assert dark.seen == dark.dark == 5 and not dark.samples
+
+
+def test_the_sensors_off_anchor_keeps_what_rgb_alone_sees() -> None:
+    """Backbone 2 trained on thermal inputs moves its answer to an empty input, which the RGB-alone detector
+    reads; the anchor holds it (train mode, as in training)."""
+    from respecd.lab.detector.adapt import ANCHOR_WEIGHT, SensorsOff
+    from respecd.perception.config import ModelSpec
+    from respecd.perception.model import FusionNet
+
+    drift = {}
+    for anchored in (False, True):
+        torch.manual_seed(0)
+        model = FusionNet(ModelSpec(**TINY))
+        anchor = SensorsOff(model, (64, 64))
+        model.train()
+        opt = torch.optim.SGD(model.aux.parameters(), lr=0.05)
+        for _ in range(30):
+            x = torch.rand(4, 2, 64, 64)
+            loss = -model.encode_aux(x, torch.ones(4, 2))[2].mean()  # any objective that moves backbone 2
+            if anchored:
+                loss = loss + anchor(model)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        drift[anchored] = float(anchor(model).detach()) / ANCHOR_WEIGHT
+    assert drift[True] < 0.25 * drift[False]
