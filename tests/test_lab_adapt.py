@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import asyncio
 import json
-import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -41,7 +40,7 @@ def record(path: Path, sensors: list[dict], seconds: float = 2.0) -> Path:
     """A small session: each listed camera at 10 Hz (RGB 64x36, thermal 16x12 centikelvin)."""
     clock = ManualClock()
     config = RecordingConfig(path=str(path), chunk_size_kib=16, flush_s=0.25, fsync=False)  # chunks to cut between
-    recorder = Recorder(config, {"name": "bench-rig", "sensors": sensors}, clock)
+    recorder = Recorder(config, {"name": "bench-rig", "sensors": sensors}, clock, drain_s=None)  # every frame kept
     recorder.start()
     rng = np.random.default_rng(0)
     for i in range(int(seconds * 10) + 1):
@@ -229,14 +228,12 @@ def pack_pairs(shared: Path, path: Path) -> Path:
     profile = {"name": "flir-one-pairs", "sensors": [sensor("rgb", "rgb", cal), sensor("thermal", "thermal", cal)],
                "perception": {"weights": "builtin:rgbt"}}
     clock = ManualClock()
-    recorder = Recorder(RecordingConfig(path=str(path), rgb_format="jpeg"), profile, clock)
+    recorder = Recorder(RecordingConfig(path=str(path), rgb_format="jpeg"), profile, clock, drain_s=None)
     recorder.start()
     for i, (visible, infrared) in enumerate(pairs):
         clock.set(float(i))
         recorder.on_frame("rgb", Frame("rgb", float(i), i, cv2.imread(str(visible), cv2.IMREAD_COLOR)))
         recorder.on_frame("thermal", Frame("thermal", float(i), i, cv2.imread(str(infrared), cv2.IMREAD_GRAYSCALE)))
-        while recorder._queue:  # a recorder drops what it cannot encode in time; a packer waits instead
-            time.sleep(0.01)
     asyncio.run(recorder.close())
     return recorder.paths[0]
 
