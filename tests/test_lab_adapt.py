@@ -228,7 +228,8 @@ def pack_pairs(shared: Path, path: Path) -> Path:
     profile = {"name": "flir-one-pairs", "sensors": [sensor("rgb", "rgb", cal), sensor("thermal", "thermal", cal)],
                "perception": {"weights": "builtin:rgbt"}}
     clock = ManualClock()
-    recorder = Recorder(RecordingConfig(path=str(path), rgb_format="jpeg"), profile, clock, drain_s=None)
+    config = RecordingConfig(path=str(path), rgb_format="jpeg", thermal_colormap="none")
+    recorder = Recorder(config, profile, clock, drain_s=None)
     recorder.start()
     for i, (visible, infrared) in enumerate(pairs):
         clock.set(float(i))
@@ -239,6 +240,7 @@ def pack_pairs(shared: Path, path: Path) -> Path:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(400)  # packing 23 full-size pairs, a CLI process and a run: over 120 s at load 20 on 2 cores
 def test_adapt_runs_on_a_session_of_real_pairs(shared_data: Path, tmp_path: Path, cli) -> None:
     log = pack_pairs(shared_data, tmp_path / "pairs.mcap")
     out = tmp_path / "adapted.pt"
