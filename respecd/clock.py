@@ -35,6 +35,10 @@ class MonotonicClock:
         if delay > 0:
             await asyncio.sleep(delay)
 
+    def monotonic_at(self, t: float) -> float:
+        """The ``time.monotonic()`` reading at which this clock reads ``t`` (respecd.ticktimer)."""
+        return self._t0 + t
+
 
 class ScaledClock(MonotonicClock):
     """Replay at a multiple of real time (``--speed 2`` runs twice as fast)."""
@@ -56,6 +60,9 @@ class ScaledClock(MonotonicClock):
         delay = (t - self.now()) / self._speed
         if delay > 0:
             await asyncio.sleep(delay)
+
+    def monotonic_at(self, t: float) -> float:
+        return self._t0 + (t - self._start) / self._speed
 
 
 class ManualClock:

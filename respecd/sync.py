@@ -21,6 +21,7 @@ from respecd.clock import Clock
 from respecd.drivers.base import Driver
 from respecd.messages import Bundle, Frame, Health, Modality, SensorConfig, SyncStats
 from respecd.queues import DropOldestQueue
+from respecd.ticktimer import TickTimer
 
 log = structlog.get_logger(__name__)
 
@@ -138,10 +139,17 @@ class Synchronizer:
         return tick_rate(rates, self.min_rate_hz, self.max_rate_hz)
 
     async def run(self) -> None:
+        timer = TickTimer(self.clock)  # the tick to the microsecond, not the loop's millisecond
+        try:
+            await self._tick_forever(timer)
+        finally:
+            timer.close()
+
+    async def _tick_forever(self, timer: TickTimer) -> None:
         rate = self.current_rate()
         scheduled = grid_time(self.clock.now(), rate, self.phase)
         while True:
-            await self.clock.sleep_until(scheduled)
+            await timer.sleep_until(scheduled)
             actual = self.clock.now()
             if self.on_tick is not None:
                 self.on_tick(scheduled, actual)
