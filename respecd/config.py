@@ -60,6 +60,12 @@ class SyncConfig(StrictModel):
     bundle_queue: int = Field(
         2, ge=1, le=64, description="Bundles buffered for perception before the oldest is dropped."
     )
+    realtime_priority: int = Field(
+        10, ge=0, le=49,
+        description="The live daemon's event-loop thread (it ticks the synchronizer) in SCHED_FIFO at this "
+        "priority, so busy neighbours cannot delay a tick, where the process may (LimitRTPRIO= or CAP_SYS_NICE); "
+        "threads it starts stay in normal scheduling. 0: normal scheduling.",
+    )
 
     @model_validator(mode="after")
     def _ordered_thresholds(self) -> SyncConfig:

@@ -5,6 +5,8 @@ through ``Daemon``, which adds what the process on a robot needs, and undoes wha
 the run ends:
 
 - the GIL switch interval at ``GIL_SWITCH_INTERVAL_S`` while the session runs;
+- the loop's thread in real-time scheduling where permitted (``sync.realtime_priority``,
+  respecd.priority), so a busy neighbour process does not delay the synchronizer's ticks;
 - ``gc.freeze`` once the pipeline is up: what start-up made (modules, the detector, the profile)
   lives as long as the run, so out of the collector's sight a full collection scans only what
   the run allocates since (with torch loaded one took tens of ms, on the loop or a stage's thread);
@@ -27,7 +29,7 @@ from typing import Any
 
 import structlog
 
-from respecd import heap
+from respecd import heap, priority
 from respecd.liveness import Liveness, status_text
 from respecd.sdnotify import Notifier
 from respecd.session import Session
@@ -70,6 +72,7 @@ class Daemon:
         self._chores: dict[str, asyncio.Task[None]] = {}
         self._withheld: list[str] = []  # why the watchdog is not fed, as last logged
         self._froze = False
+        self.loop_scheduling = "normal: not running"  # what the loop's thread runs as (priority.realtime_loop)
 
     async def run(self, duration: float | None = None, stop: asyncio.Event | None = None) -> None:
         """``Session.run`` with the chores; the switch interval and the frozen objects restored after."""
@@ -78,6 +81,8 @@ class Daemon:
         relay = StderrRelay() if self.relay_stderr else None
         previous = sys.getswitchinterval()
         sys.setswitchinterval(GIL_SWITCH_INTERVAL_S)
+        self.loop_scheduling, restore_scheduling = priority.realtime_loop(self.session.profile.sync.realtime_priority)
+        log.info("loop_scheduling", runs_as=self.loop_scheduling)
         if relay is not None:
             relay.start()
         try:
@@ -88,6 +93,7 @@ class Daemon:
             self.notifier.close()
             if self._froze:
                 gc.unfreeze()
+            restore_scheduling()
             sys.setswitchinterval(previous)
             if relay is not None:
                 relay.stop()
