@@ -2,7 +2,9 @@
 
 With ``--with-perception --with-controller`` the detector and the learning controller run
 too (``--policy`` picks another): it explores, updates its Q-table and reconfigures the
-sensors, as the daemon does."""
+sensors, as the daemon does. ``--neighbour N`` runs the measurement a second time beside N
+spinning processes (respecd.lab.bench.neighbour) and gives the loaded figures beside the
+unloaded ones, with their ratio: how well the loop holds its tick against a busy neighbour."""
 
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from respecd.argtypes import positive_float
+from respecd.argtypes import non_negative_int, positive_float
 
 if TYPE_CHECKING:
     from respecd.config import Profile
@@ -32,6 +34,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--policy", default="learn", choices=("learn", "static", "heuristic", "exploit"),
                         help="the controller's policy with --with-controller (default learn: it explores, "
                         "updates its table and reconfigures the sensors)")
+    parser.add_argument("--neighbour", type=non_negative_int, default=0, metavar="N",
+                        help="measure again beside N processes spinning on a core each (a busy neighbour); "
+                        "report both runs and their ratio (default 0: no second run)")
 
 
 def bench_profile(source: str, with_perception: bool, with_controller: bool, policy: str = "learn") -> Any:
@@ -85,7 +90,8 @@ async def _measure(profile: Profile, seconds: float) -> dict[str, Any]:
     context = DriverContext(seed=0, simulation=getattr(profile, "simulation", None))
     with tempfile.TemporaryDirectory() as state_dir:
         session = Session(profile, clock, context, state_dir=Path(state_dir))
-        jitter, lag, cpu_s, wall_s = await timed_run(Daemon(session), seconds)
+        daemon = Daemon(session)
+        jitter, lag, cpu_s, wall_s = await timed_run(daemon, seconds)
     pipeline = session.pipeline
     frames = {n: d.health.frames for n, d in pipeline.drivers.items()}
     dropped = sum(q.dropped for q in pipeline.frame_queues.values()) + pipeline.bundles.dropped
@@ -100,14 +106,35 @@ async def _measure(profile: Profile, seconds: float) -> dict[str, Any]:
         "loop_lag_ms_p99": round(float(np.percentile(lag[len(lag) // 10 :], 99)) * 1000, 3),
         "dropped": dropped,
         "cpu_percent": round(100.0 * cpu_s / wall_s, 1),
+        "loop_scheduling": daemon.loop_scheduling,
+        "load_average_1min": round(os.getloadavg()[0], 2),
     }
+
+
+def _beside_neighbours(profile: Profile, seconds: float, count: int) -> dict[str, Any]:
+    from respecd.lab.bench.neighbour import busy_neighbours, cpu_seconds
+
+    with busy_neighbours(count) as spinners:
+        wall0 = time.perf_counter()
+        figures = asyncio.run(_measure(profile, seconds))
+        figures["neighbour_cores"] = round(cpu_seconds(spinners) / (time.perf_counter() - wall0), 2)
+    figures["neighbour_processes"] = count
+    return figures
+
+
+def _ratios(alone: dict[str, Any], loaded: dict[str, Any]) -> dict[str, float | None]:
+    keys = ("sync_jitter_ms_p50", "sync_jitter_ms_p99", "loop_lag_ms_p99")
+    return {k: round(loaded[k] / alone[k], 2) if alone[k] else None for k in keys}
 
 
 def run(args: argparse.Namespace) -> dict[str, Any]:
     policy = getattr(args, "policy", "learn")
     profile = bench_profile(args.config, args.with_perception, args.with_controller, policy)
     figures = asyncio.run(_measure(profile, args.seconds))
+    neighbour = getattr(args, "neighbour", 0)
+    if neighbour:
+        figures["with_neighbour"] = _beside_neighbours(profile, args.seconds, neighbour)
+        figures["neighbour_over_alone"] = _ratios(figures, figures["with_neighbour"])
     figures["config"] = {"profile": args.config, "perception": args.with_perception,
                          "controller": policy if args.with_controller else False}
-    figures["load_average_1min"] = round(os.getloadavg()[0], 2)
     return figures
