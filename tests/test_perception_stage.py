@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import asyncio
+import os
+import sys
 import threading
 
 import numpy as np
@@ -126,3 +128,40 @@ async def test_bundles_without_a_new_detector_input_are_skipped() -> None:
     await asyncio.gather(task, return_exceptions=True)
     assert [p.bundle.seq for p in received] == [0, 2]
     assert len(detector.calls) == 2 and stage.skipped == 1
+
+
+class NiceNotingDetector(FusionDetector):
+    """The real detector, noting the nice value of the thread each call ran on."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.nice: list[int] = []
+
+    def infer(self, frames, attribute):
+        self.nice.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
+        return super().infer(frames, attribute)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="per-thread nice values are Linux's")
+@pytest.mark.parametrize("lockstep", [False, True], ids=["live", "lockstep-replay"])
+async def test_the_detector_yields_to_the_loop_live_but_not_where_the_replay_clock_waits_for_it(lockstep) -> None:
+    """Live, the loop keeps time and the detector only has to keep up (nice +10); in a lockstep
+    replay (a latency model) the log's clock stands still until the detector is done."""
+    from respecd.replay.latency import LatencyModel
+
+    config = PerceptionConfig(model=TINY, score_threshold=0.0, max_detections=5, attribution_every_s=10.0)
+    detector = NiceNotingDetector(FusionNet(TINY), config)
+    clock = ManualClock()
+    stage = PerceptionStage(config, calibration=None, clock=clock, detector=detector,
+                            latency_model=LatencyModel() if lockstep else None)
+    bundles: DropOldestQueue[Bundle] = DropOldestQueue(4)
+    percepts = DropOldestQueue(8)
+    task = asyncio.create_task(stage.run(bundles, percepts), name="perception")
+    bundles.put(_bundle(0.0, 0))
+    while not detector.nice:
+        clock.advance(0.05)  # the modelled latency passes on the log's clock
+        await asyncio.sleep(0.01)
+    task.cancel()
+    await asyncio.gather(task, return_exceptions=True)
+    own = os.getpriority(os.PRIO_PROCESS, 0)
+    assert detector.nice[0] == (own if lockstep else min(19, own + 10))

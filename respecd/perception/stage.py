@@ -131,8 +131,10 @@ class PerceptionStage:
         """Forever: bundle -> detector (worker thread) -> Percept(bundle=...) on ``percepts``."""
         await self.load()
         loop = asyncio.get_running_loop()
-        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="perception",
-                                            initializer=lower_thread_priority)
+        # live, the detector only has to keep up and yields to the loop; in a lockstep replay (the
+        # latency model's) the log's clock waits for it, so it is the critical path: normal priority
+        yields = lower_thread_priority if self.latency_model is None else None
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="perception", initializer=yields)
         try:
             while True:
                 if self.latency_model is not None:
