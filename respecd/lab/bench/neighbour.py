@@ -4,7 +4,10 @@ A robot's computer runs other nodes beside the daemon (a Jetson with its ROS 2 s
 development machine runs other jobs: the loop's timing must hold while they compete for the
 cores. ``bench pipeline --neighbour N`` measures it against a load anyone can start again: N
 Python interpreters running ``while True: pass`` at the benchmark's own nice value, each
-wanting a whole core for as long as the measurement lasts.
+wanting a whole core for as long as the measurement lasts. Each runs in a session of its own,
+as another service would (with autogroups the kernel shares the CPU between sessions first,
+so a neighbour in the benchmark's own session would be weighed against its threads' nice
+values instead).
 """
 
 from __future__ import annotations
@@ -25,7 +28,8 @@ def busy_neighbours(count: int) -> Iterator[list[subprocess.Popen[bytes]]]:
     try:
         for _ in range(count):
             spinners.append(subprocess.Popen([sys.executable, "-c", SPIN], stdin=subprocess.DEVNULL,
-                                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+                                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                             start_new_session=True))
         yield spinners
     finally:
         for spinner in spinners:
