@@ -63,8 +63,8 @@ class SyncConfig(StrictModel):
     realtime_priority: int = Field(
         10, ge=0, le=49,
         description="The live daemon's event-loop thread (it ticks the synchronizer) in SCHED_FIFO at this "
-        "priority, so busy neighbours cannot delay a tick, where the process may (LimitRTPRIO= or CAP_SYS_NICE); "
-        "threads it starts stay in normal scheduling. 0: normal scheduling.",
+        "priority, so busy neighbour processes do not keep it off a core, where the process may (LimitRTPRIO= or "
+        "CAP_SYS_NICE); threads it starts stay in normal scheduling. 0: normal scheduling.",
     )
 
     @model_validator(mode="after")

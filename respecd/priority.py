@@ -12,12 +12,13 @@ that do background work for their whole life.
 Against other processes, nice values do little: with autogroups (the default) or one cgroup
 per service, nice only ranks threads inside their own group, and a busy neighbour still
 keeps the loop waiting for a core, often longer than a tick (docs/PERFORMANCE.md "pipeline").
-So the live daemon puts its loop thread, and that thread
-alone, in the real-time class where the process may (``realtime_loop``): ``SCHED_FIFO`` at
-a low priority wakes it ahead of every normal thread, whatever its group. It is asked with
-``SCHED_RESET_ON_FORK``, so the threads the loop starts later (the detector, the renders,
-the recorder, the executors) begin in normal scheduling and cannot hog a core at real-time
-priority; the loop itself blocks in ``epoll_wait`` every iteration.
+So the live daemon puts its loop thread, and that thread alone, in the real-time class where
+the process may (``realtime_loop``): ``SCHED_FIFO`` at a low priority wakes it ahead of every
+normal thread, whatever its group. It is asked with ``SCHED_RESET_ON_FORK``, so the threads
+the loop starts later (the detector, the renders, the recorder, the executors) begin in normal
+scheduling and cannot hog a core at real-time priority; the loop itself blocks in
+``epoll_wait`` every iteration. It still needs the GIL: a worker holding it while a neighbour
+has the worker's core delays the loop however the loop is scheduled.
 """
 
 from __future__ import annotations

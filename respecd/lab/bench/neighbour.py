@@ -50,4 +50,3 @@ def cpu_seconds(spinners: list[subprocess.Popen[bytes]]) -> float:
             continue
         total += (int(fields[11]) + int(fields[12])) / ticks  # utime, stime (fields 14, 15 of stat)
     return total
-
