@@ -35,6 +35,11 @@ def driver_class(key: str) -> type[Driver]:
     return _load(key, 0)
 
 
+def config_class(key: str) -> type[DriverConfigBase]:
+    """The profile entry model of the driver registered under ``key``."""
+    return _load(key, 1)
+
+
 def config_classes() -> list[type[DriverConfigBase]]:
     """Every registered driver's config model, for the profile's discriminated union."""
     return [_load(key, 1) for key in DRIVERS]

@@ -9,6 +9,13 @@ resolution an upscale, said in ``notes``), radar points cut to the mode's maximu
 velocities folded into its +-v_max (the figures of the radar driver's chirp table row for the
 mode and rate), nothing when disabled.
 
+What the controller may ask is what the robot's own driver offers (``offered``: the recorded
+profile's sensor, read before the replay), never what this log happened to record: so the action
+space, and a Q-table's layout, are the same for every log of one profile. A rate above what the
+log recorded is applied as asked (the robot would have run it, and pays for it in the report's
+energy) and served with every frame the log has, so at the recorded rate; the applied config's
+notes say so, and ``unserved`` counts it for the report.
+
 Frames carry their logged time; the driver sleeps on the injected clock until that time,
 so a ``ManualClock`` replays in lockstep and a scaled clock at 1x or 2x. Radar frames whose
 raw UART bytes were logged are decoded again by the live parser (``respecd.radar.parser``).
@@ -27,12 +34,13 @@ import numpy as np
 import structlog
 from pydantic import Field
 
-from respecd.drivers.base import Capabilities, DriverConfigBase, clamp_request
+from respecd.drivers.base import MAX_RATE_HZ, MIN_RATE_HZ, Capabilities, DriverConfigBase, clamp_request
 from respecd.drivers.base import Driver as _Driver
 from respecd.errors import DriverIOError, DriverUnavailableError
 from respecd.messages import Frame, RadarMode, Resolution, SensorConfig
 from respecd.priority import lower_thread_priority
 from respecd.replay import counterfactual
+from respecd.sensors import StrictModel
 
 log = structlog.get_logger(__name__)
 
@@ -43,6 +51,21 @@ ACTION_RESOLUTIONS: dict[str, tuple[Resolution, ...]] = {
 }
 
 
+class Offered(StrictModel):
+    """What the robot's own driver offers for a sensor (its capabilities before start, as the live
+    daemon builds its action space from them)."""
+
+    resolutions: tuple[Resolution, ...] = Field((), description="Resolutions offered, best first.")
+    modes: tuple[RadarMode, ...] = Field((), description="Radar preferences offered.")
+    min_rate_hz: float = Field(MIN_RATE_HZ, ge=MIN_RATE_HZ, le=MAX_RATE_HZ, description="Lowest rate offered.")
+    max_rate_hz: float = Field(MAX_RATE_HZ, ge=MIN_RATE_HZ, le=MAX_RATE_HZ, description="Highest rate offered.")
+
+    @classmethod
+    def of(cls, caps: Capabilities) -> Offered:
+        return cls(resolutions=caps.resolutions, modes=caps.modes, min_rate_hz=caps.min_rate_hz,
+                   max_rate_hz=caps.max_rate_hz)
+
+
 class ReplayConfig(DriverConfigBase):
     driver: Literal["replay"] = "replay"
     source: str | None = Field(None, description="Sensor name in the log (default: this sensor's name).")
@@ -50,7 +73,12 @@ class ReplayConfig(DriverConfigBase):
         None, description="Resolution the log was recorded at; larger requests are upscaled and reported so."
     )
     max_rate_hz: float = Field(
-        30.0, ge=1, le=30, description="Highest rate the log can serve (its recorded frame rate)."
+        30.0, ge=1, le=30, description="Highest rate the log can serve (its recorded frame rate); a request above it "
+        "is served at it and counted as unserved.",
+    )
+    offered: Offered | None = Field(
+        None, description="What the robot's own driver offers (the controller's action space); absent: the paper's "
+        "resolutions and the log's own, radar modes, 1-30 Hz.",
     )
     radar_max_range_m: dict[str, float] | None = Field(
         None, description="Maximum range (m) per radar mode, overriding the chirp table's; points beyond are dropped.",
@@ -76,23 +104,55 @@ class ReplayDriver(_Driver):
         self._prefetch: _Prefetch | None = None
         self.served = 0
         self.dropped_by_rate = 0
-        self.applied = clamp_request(self.capabilities, config.initial_request())
+        self.unserved_requests = 0  # applies asking a rate above what the log recorded
+        self.unserved_asked_hz = 0.0  # the highest such rate asked
+        self._unserved_s = 0.0
+        self._unserved_since: float | None = None
+        self.applied = self._serve(clamp_request(self.capabilities, config.initial_request()))
         self._last_logged_t: float | None = None
 
     @property
     def capabilities(self) -> Capabilities:
+        """What the robot's driver offers (``offered``); sizes above the logged one are upscales."""
         native = self.config.native_resolution
-        modes: tuple[RadarMode, ...] = ("range", "velocity") if self.modality == "radar" else ()
-        offered = list(ACTION_RESOLUTIONS.get(self.modality, ()))
-        if native is not None and tuple(native) not in offered:
-            offered.append(tuple(native))  # type: ignore[arg-type]
-        offered.sort(key=lambda r: -r[0] * r[1])
-        upscaled = tuple(r for r in offered if native is not None and r[0] * r[1] > native[0] * native[1])
-        if native is None:
-            offered = []
-        return Capabilities(
-            self.modality, tuple(offered), modes, max_rate_hz=self.config.max_rate_hz, upscaled=upscaled
-        )
+        offered = self.config.offered
+        if offered is not None:
+            sizes = list(offered.resolutions) if native is not None else []
+            modes, low, high = offered.modes, offered.min_rate_hz, offered.max_rate_hz
+        else:
+            sizes = list(ACTION_RESOLUTIONS.get(self.modality, ())) if native is not None else []
+            if native is not None and tuple(native) not in sizes:
+                sizes.append(tuple(native))  # type: ignore[arg-type]
+            sizes.sort(key=lambda r: -r[0] * r[1])
+            modes = ("range", "velocity") if self.modality == "radar" else ()
+            low, high = MIN_RATE_HZ, MAX_RATE_HZ
+        upscaled = tuple(r for r in sizes if native is not None and r[0] * r[1] > native[0] * native[1])
+        return Capabilities(self.modality, tuple(sizes), modes, min_rate_hz=low, max_rate_hz=high, upscaled=upscaled)
+
+    def unserved(self, now: float) -> dict[str, float] | None:
+        """What the log could not serve so far: requests, seconds under them, rates asked and recorded."""
+        if not self.unserved_requests:
+            return None
+        seconds = self._unserved_s + (now - self._unserved_since if self._unserved_since is not None else 0.0)
+        return {"requests": self.unserved_requests, "seconds": round(max(seconds, 0.0), 3),
+                "asked_hz": self.unserved_asked_hz, "recorded_hz": self.config.max_rate_hz}
+
+    def _serve(self, applied: SensorConfig) -> SensorConfig:
+        """``applied`` as the robot would run it; a rate above what the log recorded is said in its notes
+        and counted: the log serves every frame it has, so that sensor runs at the recorded rate."""
+        recorded = self.config.max_rate_hz
+        now = self.clock.now() if self.clock is not None else 0.0
+        if applied.rate_hz <= recorded + 1e-9 or not applied.enabled:
+            if self._unserved_since is not None:
+                self._unserved_s += now - self._unserved_since
+                self._unserved_since = None
+            return applied
+        self.unserved_requests += 1
+        self.unserved_asked_hz = max(self.unserved_asked_hz, applied.rate_hz)
+        if self._unserved_since is None:
+            self._unserved_since = now
+        note = f"rate {applied.rate_hz:g} Hz is above what the log recorded ({recorded:g} Hz): served at that"
+        return replace(applied, notes=(*applied.notes, note))
 
     async def start(self) -> None:
         log_ = getattr(self.context, "replay", None)
@@ -112,7 +172,7 @@ class ReplayDriver(_Driver):
             await asyncio.to_thread(prefetch.close)
 
     async def apply(self, request: SensorConfig) -> SensorConfig:
-        self.applied = clamp_request(self.capabilities, request)
+        self.applied = self._serve(clamp_request(self.capabilities, request))
         return self.applied
 
     async def frames(self) -> AsyncIterator[Frame]:

@@ -1,7 +1,11 @@
 """The profile a replay runs with: the recorded (or given) profile, every sensor swapped for
 a ``replay`` driver that serves that sensor's logged frames, recording off, the detector on a
 device this machine has (``replay.detector``), and — for a lockstep replay — nothing that reads
-this machine's state (the CPU probe)."""
+this machine's state (the CPU probe).
+
+Each replay sensor carries what the robot's own driver offers (``offered``: the driver built
+from the profile's entry, before start, as the live daemon builds its action space), so the
+controller's action space comes from the profile and never from what one log recorded."""
 
 from __future__ import annotations
 
@@ -43,9 +47,31 @@ def logged_rate(session: SessionLog, sensor: str) -> float:
     return min(30.0, max(1.0, math.ceil(rate * 10 - 1e-6) / 10))
 
 
+def offered_by(entry: dict[str, Any]) -> dict[str, Any] | None:
+    """What the profile entry's own driver offers before start (its ``capabilities``), as JSON;
+    None when that driver cannot be built here (no ``driver:`` key, as for a ROS bag's topics,
+    or a driver this replay cannot load): the replay driver then offers the paper's space."""
+    from respecd.drivers import DRIVERS, config_class, driver_class
+    from respecd.drivers.replay import Offered
+
+    key = entry.get("driver")
+    if not isinstance(key, str) or key not in DRIVERS or key == "replay":
+        return None
+    try:
+        driver = driver_class(key)(config_class(key).model_validate(entry), None)  # type: ignore[arg-type]
+        caps = driver.capabilities
+    except Exception as err:  # noqa: BLE001 - any driver's refusal: the replay's own space instead, said once
+        log.warning("replay.driver_offer_unknown", sensor=entry.get("name"), driver=key, error=str(err))
+        return None
+    return Offered.of(caps).model_dump(mode="json")
+
+
 def replay_sensor(entry: dict[str, Any], session: SessionLog, first: Frame) -> dict[str, Any]:
     sensor = {k: entry[k] for k in COMMON_KEYS if k in entry}
     sensor.update(driver="replay", source=entry["name"], max_rate_hz=logged_rate(session, entry["name"]))
+    offered = entry.get("offered") if entry.get("driver") == "replay" else offered_by(entry)
+    if offered is not None:
+        sensor["offered"] = offered
     if first.data.ndim >= 2 and first.modality != "radar":
         sensor["native_resolution"] = [int(first.data.shape[1]), int(first.data.shape[0])]
     if sensor.get("rate_hz", 30.0) > sensor["max_rate_hz"]:
