@@ -24,6 +24,7 @@ import math
 import os
 import time
 import zipfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, BinaryIO
 
@@ -67,21 +68,29 @@ def fingerprint(layout: dict[str, Any]) -> str:
     return hashlib.sha256(canonical.encode()).hexdigest()[:16]
 
 
-def save_table(path: Path, table: QTable, layout: dict[str, Any], info: dict[str, Any]) -> None:
-    """Write atomically (temp + fsync + rename + directory fsync)."""
-    meta = {
+def table_meta(table: QTable, layout: dict[str, Any], info: dict[str, Any]) -> dict[str, Any]:
+    """A table's ``meta``: format, the layout and its fingerprint, progress, and ``info``."""
+    return {
         "format": FORMAT,
         "version": VERSION,
         "fingerprint": fingerprint(layout),
         "layout": layout,
         "updates": table.updates,
         "epsilon": table.epsilon,
-        "saved_unix": time.time(),
         **info,
     }
+
+
+def save_table(path: Path, table: QTable, layout: dict[str, Any], info: dict[str, Any]) -> None:
+    """Write atomically (temp + fsync + rename + directory fsync), stamped with the time."""
+    write_arrays(path, {**table_meta(table, layout, info), "saved_unix": time.time()}, table.q, table.visits)
+
+
+def write_arrays(path: Path, meta: dict[str, Any], q: np.ndarray, visits: np.ndarray) -> None:
+    """Write ``meta`` and the arrays as a table file, atomically."""
     buffer = io.BytesIO()
     meta_bytes = np.frombuffer(json.dumps(meta).encode(), dtype=np.uint8)
-    np.savez_compressed(buffer, q=table.q, visits=table.visits, meta=meta_bytes)
+    np.savez_compressed(buffer, q=q, visits=visits, meta=meta_bytes)
     write_atomically(path, buffer.getbuffer())
 
 
@@ -212,6 +221,74 @@ def _array(path: Path, data: Any, name: str) -> np.ndarray:
             raise
         raise InputError(f"{path}: not a respecd Q-table: array {name!r} holds Python objects (a pickle), "
                          f"which respecd never loads; {EXPECTED}") from err
+
+
+def mismatch(meta: dict[str, Any], layout: dict[str, Any], profile: str) -> str | None:
+    """Why a table (its ``meta``) does not fit ``layout`` (of profile ``profile``); None when it fits.
+    Names what differs: the profile each was made for, the state factors, the action slots."""
+    if meta.get("fingerprint") == fingerprint(layout):
+        return None
+    theirs: dict[str, Any] = meta["layout"] if isinstance(meta.get("layout"), dict) else {}
+    made_for = f"profile {meta.get('profile', '?')!r}" + (f", this run {profile!r}" if meta.get("profile") != profile
+                                                         else "")
+    return f"it was learned for {made_for}: " + "; ".join(_layout_differences(theirs, layout))
+
+
+def _layout_differences(theirs: dict[str, Any], ours: dict[str, Any]) -> list[str]:
+    """What differs between two layouts, most telling first (at least one line)."""
+    found = []
+    states_a, states_b = theirs.get("states") or {}, ours.get("states") or {}
+    if states_a.get("factors") != states_b.get("factors"):
+        found.append(f"state factors {states_a.get('factors')} here {states_b.get('factors')}")
+    elif states_a.get("bins") != states_b.get("bins"):
+        found.append(f"state bins {states_a.get('bins')} here {states_b.get('bins')}")
+    space_a = (theirs.get("actions") or {}).get("space") or {}
+    space_b = (ours.get("actions") or {}).get("space") or {}
+    if space_a.get("mode") != space_b.get("mode"):
+        found.append(f"action mode {space_a.get('mode')} here {space_b.get('mode')}")
+    slots_a = {s.get("name"): s for s in space_a.get("slots") or []}
+    slots_b = {s.get("name"): s for s in space_b.get("slots") or []}
+    if list(slots_a) != list(slots_b):
+        found.append(f"controlled sensors {list(slots_a)} here {list(slots_b)}")
+    for name in [n for n in slots_b if n in slots_a]:
+        for key in ("settings", "rates"):
+            if slots_a[name].get(key) != slots_b[name].get(key):
+                found.append(f"{name} {key} {slots_a[name].get(key)} here {slots_b[name].get(key)}")
+    return found or ["its state/action layout differs (fingerprint "
+                     f"{fingerprint(theirs) if theirs else '?'} here {fingerprint(ours)})"]
+
+
+@dataclass(frozen=True)
+class StoredTable:
+    """A Q-table file's contents, read once: what a replay or a fleet's workers are given (not its
+    path, which another machine may not have). ``name`` says where it came from, in messages."""
+
+    meta: dict[str, Any]
+    q: np.ndarray
+    visits: np.ndarray
+    name: str
+
+    @classmethod
+    def read(cls, path: Path) -> StoredTable:
+        meta, q, visits = read_table(Path(path))
+        return cls(meta, q, visits, Path(path).name)
+
+    @property
+    def updates(self) -> int:
+        return int(self.meta.get("updates", 0))
+
+    def write(self, path: Path) -> None:
+        """Save as a table file (no time stamp in meta: the same table reads back the same)."""
+        write_arrays(Path(path), self.meta, self.q, self.visits)
+
+    def restore_into(self, table: QTable, layout: dict[str, Any], profile: str) -> None:
+        """Load into ``table``; InputError naming what differs when it was learned for another layout."""
+        why = mismatch(self.meta, layout, profile)
+        if why is None and self.q.shape != table.shape:
+            why = f"its shape {self.q.shape} is not this run's {table.shape}"
+        if why is not None:
+            raise InputError(f"{self.name}: the Q-table does not fit: {why}")
+        table.restore(self.q, self.visits, self.updates, float(self.meta.get("epsilon", table.epsilon)))
 
 
 def load_into(path: Path, table: QTable, layout: dict[str, Any], set_aside: bool = True) -> bool:

@@ -14,7 +14,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -26,11 +26,11 @@ from respecd.control.config import ControllerConfig
 from respecd.control.controller import Controller
 from respecd.control.features import FeatureExtractor
 from respecd.control.loop import ControlLoop
-from respecd.control.persist import load_into, save_table, table_path
+from respecd.control.persist import StoredTable, load_into, save_table, table_path
 from respecd.control.probe import SystemProbe, SystemSample
 from respecd.control.shipped import load_shipped
 from respecd.drivers.base import Driver
-from respecd.errors import DriverError
+from respecd.errors import DriverError, InputError
 from respecd.messages import Decision, Percept, SensorConfig
 from respecd.queues import DropOldestQueue
 from respecd.sensors import Capabilities
@@ -47,12 +47,18 @@ class TableFiles:
     """Where a run's Q-table comes from and where it goes.
 
     A live run reads and writes its state directory's table and renames a bad one aside; a
-    replay reads one without ever changing it, and writes only where it is told to.
+    replay reads one without ever changing it, and writes only where it is told to. A replay is
+    ``strict``: a table that does not fit its profile, or ``exploit`` with no table at all, is an
+    error (exit 2) naming why — unless ``allow_none``, when it runs without one and says so.
+    ``given``: the table's contents, already read (a fleet's workers are given it, not a path).
     """
 
     load: Path | None
     save: Path | None
     set_aside: bool = False
+    given: StoredTable | None = None
+    strict: bool = False
+    allow_none: bool = False
 
     @classmethod
     def state_dir(cls, directory: Path, config: ControllerConfig, profile_name: str) -> TableFiles:
@@ -140,6 +146,7 @@ class ControllerStage:
         self._prepared = False
         self._saved_updates = 0
         self._unsaved: SaveFailure | None = None  # the state directory refusing the table's saves
+        self.table_source: str | None = None  # which table the run started from (the replay's report says)
 
     # public ---------------------------------------------------------------------------
     @property
@@ -189,17 +196,8 @@ class ControllerStage:
         """Load the Q-table and prime the system probe (once: a supervisor restart keeps the table)."""
         if self._prepared:
             return
-        table = self.controller.table
-        if table is not None:
-            layout = self.controller.layout()
-            loaded = False
-            if self.tables.load is not None:
-                loaded = await asyncio.to_thread(load_into, self.tables.load, table, layout, self.tables.set_aside)
-            if not loaded and self.config.policy == "exploit":  # nothing learned here yet: the shipped table
-                loaded = await asyncio.to_thread(load_shipped, table, layout)
-            self._saved_updates = table.updates
-            if not loaded and self.config.policy == "exploit":
-                log.warning("exploit_without_table", path=str(self.table_path))
+        if self.controller.table is not None:
+            await self._load_table()
         if self.config.system_probe:
             rails = self.profile.telemetry.power_rails == "auto"
             probe = await asyncio.to_thread(SystemProbe, Path("/"), rails)
@@ -211,6 +209,32 @@ class ControllerStage:
                  table=str(self.table_path))
 
     _prepare = prepare  # the name the tests used
+
+    async def _load_table(self) -> None:
+        table, layout, tables = self.controller.table, self.controller.layout(), self.tables
+        assert table is not None
+        source = None
+        if tables.strict and tables.given is None and tables.load is not None and tables.load.is_file():
+            tables = replace(tables, given=await asyncio.to_thread(StoredTable.read, tables.load))
+        if tables.given is not None:
+            tables.given.restore_into(table, layout, self.profile.name)  # InputError: it does not fit
+            source = f"{tables.given.name} ({tables.given.updates} updates)"
+        elif tables.load is not None and await asyncio.to_thread(load_into, tables.load, table, layout,
+                                                                  tables.set_aside):
+            source = f"{tables.load.name} ({table.updates} updates)"
+        if source is None and self.config.policy == "exploit":  # nothing learned here yet: the shipped table
+            if await asyncio.to_thread(load_shipped, table, layout):
+                source = f"shipped ({table.updates} updates)"
+        self._saved_updates = table.updates
+        if source is None and self.config.policy == "exploit":
+            if tables.strict and not tables.allow_none:
+                where = str(tables.load) if tables.load is not None else "no --table given"
+                raise InputError(f"--policy exploit: no Q-table fits this profile ({self.profile.name!r}; {where}; "
+                                 "the shipped table is for another layout): pass one learned for it, or "
+                                 "--allow-no-table to run without one (its report row then says 'no table')")
+            log.warning("exploit_without_table", path=str(self.table_path))
+            source = "no table"
+        self.table_source = source or "new"  # learn from scratch
 
     # internals ------------------------------------------------------------------------
     async def _consume(self, percepts: DropOldestQueue[Percept]) -> None:
