@@ -96,3 +96,43 @@ def radar(tmp_path: Path):
     fake = FakeRadar(tmp_path, capture_frames())
     yield fake
     fake.unplug()
+
+
+FLEET_RATES = [(30, 9, 30), (15, 5, 10), (10, 9, 15), (5, 3, 30), (30, 5, 5), (15, 9, 10)]  # rgb, thermal, radar Hz
+
+
+@pytest.fixture(scope="session")
+def fleet_logs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
+    """Six short simulated sessions recorded through ``respecd --record``, each at other sensor
+    rates (so each log's recorded rates differ), detector off; recorded two at a time."""
+    import subprocess
+    import sys
+
+    import yaml
+
+    root = tmp_path_factory.mktemp("fleet")
+    base = yaml.safe_load((REPO / "configs" / "sim-rover.yaml").read_text())
+    jobs = []
+    for i, (rgb, thermal, radar) in enumerate(FLEET_RATES):
+        profile = dict(base, name="sim-rover-fleet")
+        sensors = {s["name"]: dict(s) for s in base["sensors"] if s["name"] != "depth"}
+        sensors["rgb"].update(rate_hz=rgb, resolution=[640, 360])
+        sensors["thermal"]["rate_hz"] = thermal
+        sensors["radar"]["rate_hz"] = radar
+        profile.update(sensors=list(sensors.values()), perception={"enabled": False},
+                       controller={"decision_period_s": 0.5, "window_s": 0.5, "min_dwell_s": 0.5},
+                       recording={"chunk_size_kib": 256})
+        profile["simulation"] = dict(base["simulation"], scenario_duration_s=1.5)
+        config = root / f"profile{i}.yaml"
+        config.write_text(yaml.safe_dump(profile))
+        log = root / "logs" / f"rover{i}.mcap"
+        argv = [sys.executable, "-m", "respecd.cli", "--config", str(config), "--duration", "3", "--seed", str(i),
+                "--record", str(log), "--state-dir", str(root / f"state{i}"), "--log-level", "warning"]
+        jobs.append((log, argv))
+    for pair in (jobs[i:i + 2] for i in range(0, len(jobs), 2)):
+        running = [(log, subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True))
+                   for log, argv in pair]
+        for log, proc in running:
+            out, _ = proc.communicate(timeout=180)
+            assert proc.returncode == 0 and log.is_file(), out[-2000:]
+    return [log for log, _ in jobs]

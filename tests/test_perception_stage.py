@@ -165,3 +165,24 @@ async def test_the_detector_yields_to_the_loop_live_but_not_where_the_replay_clo
     await asyncio.gather(task, return_exceptions=True)
     own = os.getpriority(os.PRIO_PROCESS, 0)
     assert detector.nice[0] == (own if lockstep else min(19, own + 10))
+
+def test_shared_detectors_load_once_and_start_each_session_afresh(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A fleet worker evaluates many logs: one checkpoint load, and no scene score carried over."""
+    from respecd.perception.stage import share_detectors
+
+    loads: list[str] = []
+
+    def load(config, calibration=None, exports=None):
+        loads.append(config.weights)
+        return FusionDetector(FusionNet(TINY), config)
+
+    monkeypatch.setattr(FusionDetector, "load", staticmethod(load))
+    config = PerceptionConfig(model=TINY, weights="tiny.pt")
+    with share_detectors():
+        first = PerceptionStage(config, calibration=None, clock=ManualClock())._load()
+        first.scores.update(5.0, {"rgb": 0.9, "thermal": 0.1})  # what one session leaves behind
+        second = PerceptionStage(config, calibration=None, clock=ManualClock())._load()
+        assert second is first and loads == ["tiny.pt"]
+        assert second.scores.value == second.scores.uniform and second.scores.update(1.0, None) == second.scores.uniform
+    third = PerceptionStage(config, calibration=None, clock=ManualClock())._load()  # outside: loaded anew
+    assert third is not first and len(loads) == 2

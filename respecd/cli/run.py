@@ -73,6 +73,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--save-table", metavar="PATH",
                         help="replay: write the Q-table the replay learned here (a replay never writes the state "
                              "directory; with --state-dir it only reads the table there)")
+    parser.add_argument("--table", metavar="FILE",
+                        help="replay: the Q-table --policy exploit acts on (learn starts from it) instead of the state "
+                             "directory's; one learned for another profile or layout is an error (exit 2)")
+    parser.add_argument("--allow-no-table", action="store_true", default=None,
+                        help="replay: --policy exploit with no Q-table that fits runs anyway, holding the "
+                             "configuration; its report row says 'no table'")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -97,7 +103,7 @@ def main(args: argparse.Namespace) -> int:
             return asyncio.run(run_live(loaded.model, args, signals, console=fmt == "console", state_dir=state_dir))
 
 
-REPLAY_ONLY = ("speed", "report", "topics", "save_table")
+REPLAY_ONLY = ("speed", "report", "topics", "save_table", "table", "allow_no_table")
 
 
 def check_flags(args: argparse.Namespace) -> None:

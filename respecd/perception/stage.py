@@ -21,8 +21,10 @@ observers see each percept as the detector produced it (measured latency).
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import dataclasses
-from collections.abc import Callable, Mapping
+import json
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
@@ -42,6 +44,24 @@ if TYPE_CHECKING:
 log = structlog.get_logger(__name__)
 
 SHUTDOWN_TIMEOUT_S = 5.0  # longer than one forward+attribution at 1280x720 on a 2-core CPU
+
+# Loaded detectors by (perception config, calibration), while ``share_detectors`` holds: a process
+# that evaluates many logs one after another (a fleet's worker) loads each checkpoint once. Each
+# session still starts from a fresh scene score; the detector's other caches depend on input
+# sizes alone, so a shared detector answers as a fresh one does.
+_shared: dict[str, Any] | None = None
+
+
+@contextlib.contextmanager
+def share_detectors() -> Iterator[None]:
+    """Within: sessions of this process share loaded detectors (one session at a time)."""
+    global _shared
+    before = _shared
+    _shared = {} if before is None else before
+    try:
+        yield
+    finally:
+        _shared = before
 
 
 class LatencyModel(Protocol):
@@ -213,7 +233,17 @@ class PerceptionStage:
         from respecd.perception.detector import FusionDetector
 
         torch.set_num_threads(self.config.torch_threads)
-        return FusionDetector.load(self.config, self.calibration, self.exports)
+        if _shared is None:
+            return FusionDetector.load(self.config, self.calibration, self.exports)
+        key = json.dumps([self.config.model_dump(mode="json"), {m: c.model_dump(mode="json") if c is not None
+                                                                else None for m, c in self.calibration.items()},
+                          str(self.exports)],
+                         sort_keys=True)
+        detector = _shared.get(key)
+        if detector is None:
+            detector = _shared[key] = FusionDetector.load(self.config, self.calibration, self.exports)
+        detector.reset_scene_scores()
+        return detector
 
     def _has_new_input(self, bundle: Bundle) -> bool:
         """True when a detector input (RGB or an aux modality) brings a frame not yet seen.

@@ -24,7 +24,7 @@ COLUMNS = (
     ("recall", ("quality", "recall"), "{:.3f}"),
     ("precision", ("quality", "precision"), "{:.3f}"),
     ("ConfAgg", ("quality", "mean_conf_agg"), "{:.3f}"),
-    ("infer ms/s", ("compute", "inference_ms_per_s"), "{:.0f}"),
+    ("infer ms/s", ("timing", "inference_ms_per_s"), "{:.0f}"),  # measured here, not the robot's
     ("Mpix/s", ("compute", "pixels_per_s"), "{:.2f}", 1e-6),
     ("sensor W", ("energy", "mean_w"), "{:.2f}"),
     ("switches", ("actions", "switches"), "{}"),
@@ -84,7 +84,7 @@ def _cell(entry: dict[str, Any], policy: str, key: Any, fmt: str, scale: float =
     if key == "n_decisions":
         return str(len(entry.get("decisions", [])))
     value = (entry.get(key[0]) or {}).get(key[1])
-    if value is None:  # nothing to score against (no ground truth), or a figure not measured
+    if value is None:  # nothing to score against (no ground truth), a timing not measured, or an old entry
         return "-"
     return fmt.format(value * scale if scale != 1.0 else value)
 
@@ -104,6 +104,12 @@ def table(report: dict[str, Any]) -> str:
     else:
         lines.append(f"reference: {', '.join(sorted(reference))}; quality matched at IoU >= 0.5")
     lines += _detector_lines(report)
+    for policy, entry in report["policies"].items():
+        if entry.get("table") in ("no table",):
+            lines.append(f"{policy}: no table (--allow-no-table): it held the start configuration")
+        for sensor, short in (entry.get("unserved") or {}).items():
+            lines.append(f"{policy}: {sensor} asked up to {short['asked_hz']:g} Hz {short['requests']}x, the log "
+                         f"recorded {short['recorded_hz']:g} Hz: served at that for {short['seconds']:.1f} s")
     return "\n".join(lines)
 
 
