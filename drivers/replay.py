@@ -76,6 +76,9 @@ class ReplayConfig(DriverConfigBase):
         30.0, ge=1, le=30, description="Highest rate the log can serve (its recorded frame rate); a request above it "
         "is served at it and counted as unserved.",
     )
+    empty: bool = Field(
+        False, description="The log has no frame of this sensor: it serves none (the action space keeps it).",
+    )
     offered: Offered | None = Field(
         None, description="What the robot's own driver offers (the controller's action space); absent: the paper's "
         "resolutions and the log's own, radar modes, 1-30 Hz.",
@@ -117,7 +120,7 @@ class ReplayDriver(_Driver):
         native = self.config.native_resolution
         offered = self.config.offered
         if offered is not None:
-            sizes = list(offered.resolutions) if native is not None else []
+            sizes = list(offered.resolutions)
             modes, low, high = offered.modes, offered.min_rate_hz, offered.max_rate_hz
         else:
             sizes = list(ACTION_RESOLUTIONS.get(self.modality, ())) if native is not None else []
@@ -158,9 +161,11 @@ class ReplayDriver(_Driver):
         log_ = getattr(self.context, "replay", None)
         if log_ is None:
             raise DriverUnavailableError(f"{self.name}: replay driver needs an opened log (DriverContext.replay)")
+        self._stopped.clear()
+        if self.config.empty:
+            return
         if self.source not in log_.sensors:
             raise DriverUnavailableError(f"{self.name}: the log has no sensor {self.source!r}")
-        self._stopped.clear()
         if self._frames is None:  # a restart resumes where the log was, it does not rewind
             self._frames = log_.frames(self.source, log_.shared_demux(), lazy=True)
         self._prefetch = _Prefetch(self._frames, self.name, decode=self.context.decode_ahead)
@@ -176,6 +181,9 @@ class ReplayDriver(_Driver):
         return self.applied
 
     async def frames(self) -> AsyncIterator[Frame]:
+        if self.config.empty:  # nothing logged: stay quiet until stopped
+            await self._stopped.wait()
+            return
         prefetch = self._prefetch
         assert prefetch is not None, "start() first"
         while not self._stopped.is_set():

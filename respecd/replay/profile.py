@@ -79,6 +79,16 @@ def replay_sensor(entry: dict[str, Any], session: SessionLog, first: Frame) -> d
     return sensor
 
 
+def empty_sensor(entry: dict[str, Any]) -> dict[str, Any]:
+    """A profile sensor the log has no frame of: a replay sensor that serves none."""
+    sensor = {k: entry[k] for k in COMMON_KEYS if k in entry}
+    sensor.update(driver="replay", source=entry["name"], empty=True)
+    offered = entry.get("offered") if entry.get("driver") == "replay" else offered_by(entry)
+    if offered is not None:
+        sensor["offered"] = offered
+    return sensor
+
+
 def replay_profile(base: dict[str, Any], session: SessionLog, firsts: dict[str, Frame], *, seed: int,
                    lockstep: bool, policy: str | None = None) -> Profile:
     """Validated Profile for the replay (ConfigError with one line per problem)."""
@@ -89,9 +99,10 @@ def replay_profile(base: dict[str, Any], session: SessionLog, firsts: dict[str, 
     for entry in base.get("sensors", []):
         if entry.get("name") in firsts:
             sensors.append(replay_sensor(entry, session, firsts[entry["name"]]))
-        else:
-            log.warning("replay.sensor_not_in_log", sensor=entry.get("name"))
-    if not sensors:
+        else:  # kept, serving nothing: the action space is the profile's, whatever the log holds
+            log.warning("replay.sensor_not_in_log", sensor=entry.get("name"), action="serves no frames")
+            sensors.append(empty_sensor(entry))
+    if not any(entry.get("name") in firsts for entry in base.get("sensors", [])):
         names = ", ".join(sorted(firsts)) or "none"
         raise InputError(f"{session.path}: no profile sensor has frames in the log (the log has: {names})")
     doc["sensors"] = sensors
