@@ -115,7 +115,8 @@ def evaluate(log_path: str | Path, profile: str | Path | dict[str, Any] | None =
     tables = _tables(replayed, table, control.state_dir, allow_no_table)
     run = _Replay(replayed, session, speed, t0, span, seed, tables, control)
     result, timing = run.run()
-    result.update(policy=replayed.controller.policy, seed=seed, speed=speed, truncated=session.truncated)
+    result.update(policy=replayed.controller.policy, seed=seed, speed=speed, truncated=session.truncated,
+                  damage=sorted(d.describe() for d in getattr(session, "damage", ())))  # stretches skipped
     if hasattr(session, "skipped_report"):  # a ROS bag: its unreadable messages, per topic
         result["skipped"] = session.skipped_report()
     result["detector"] = detector.entry(replayed.perception, base.get("perception"), chosen_by, foreign)
