@@ -143,12 +143,11 @@ class Controller:
                              delay, motion, bandwidth)
         reward = terms["reward"]
         if self.policy == "learn" and self.table is not None and self._prev_state is not None:
-            if isinstance(self.table, FactoredQTable):
-                blocks = self._block_rewards(reward, applied, obs.radar_points)
-                terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state, blocks,
-                                                      self._immediate)
-            else:
-                terms["td_error"] = self.table.update(self._prev_state, self._prev_action, reward, state)
+            factored = isinstance(self.table, FactoredQTable)
+            blocks = self._block_rewards(reward, applied, obs.radar_points) if factored else None
+            if blocks is not None:  # recorded with the decision: a fleet learns from it without a replay
+                terms.update({f"credit.{slot.name}": r for slot, r in zip(self.space.slots, blocks, strict=True)})
+            terms["td_error"] = self.learn(self._prev_state, self._prev_action, reward, state, blocks)
         action, target = self._choose(state, bins)
         if target != self.position and obs.t - self._last_switch_t < self.config.min_dwell_s:
             action, target = self.space.hold_action(self.position), self.position  # dwell: keep sensors settled
@@ -169,6 +168,15 @@ class Controller:
             configs=self.space.requests(target),
             terms=terms,
         )
+
+    def learn(self, state: int, action: int, reward: float, next_state: int,
+              block_rewards: list[float] | None = None) -> float:
+        """The Q-update of one transition, as ``step`` makes it in learn mode (``fleet learn`` replays
+        the transitions logs recorded through it); the TD error."""
+        assert self.table is not None
+        if isinstance(self.table, FactoredQTable):
+            return self.table.update(state, action, reward, next_state, block_rewards, self._immediate)
+        return self.table.update(state, action, reward, next_state)
 
     def _block_rewards(self, reward: float, applied: Mapping[str, SensorConfig] | None,
                        radar_points: float | None) -> list[float] | None:
