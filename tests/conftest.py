@@ -111,6 +111,7 @@ def fleet_logs(tmp_path_factory: pytest.TempPathFactory) -> list[Path]:
     import yaml
 
     root = tmp_path_factory.mktemp("fleet")
+    (root / "logs").mkdir()
     base = yaml.safe_load((REPO / "configs" / "sim-rover.yaml").read_text())
     jobs = []
     for i, (rgb, thermal, radar) in enumerate(FLEET_RATES):

@@ -4,7 +4,7 @@ The daemon (respecd/ outside cli/ and lab/, and drivers/) imports neither the co
 the offline tooling (respecd.lab); the lab imports no command line: its tools are called by
 ``respecd`` subcommands, which parse their arguments with the core's ``respecd.argtypes``. Of
 the command line, only the lab's front-ends (``respecd adapt|train|eval|calibrate|train-policy|bench|
-experiment``) import the lab. Every import statement counts, lazy ones inside functions
+experiment|fleet``) import the lab. Every import statement counts, lazy ones inside functions
 included: a daemon module that imported the tooling on one code path would still make it a
 dependency of the robot.
 """
@@ -18,7 +18,8 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[1]
 # the CLI's front-ends to the tooling
-LAB_COMMANDS = {"adapt.py", "train.py", "eval.py", "calibrate.py", "train_policy.py", "bench.py", "experiment.py"}
+LAB_COMMANDS = {"adapt.py", "train.py", "eval.py", "calibrate.py", "train_policy.py", "bench.py", "experiment.py",
+                "fleet.py"}
 LAB_EXTRA = ("matplotlib", "tqdm")
 
 

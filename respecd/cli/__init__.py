@@ -35,6 +35,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "train-policy": ("respecd.cli.train_policy", "train the Q-table on the simulated scenarios (cached outcomes)"),
     "policy": ("respecd.cli.policy", "print a learned Q-table as a policy: `policy show FILE`"),
     "export": ("respecd.cli.export", "write a checkpoint's net as ONNX graphs: `export CKPT --to onnx OUT`"),
+    "fleet": ("respecd.cli.fleet", "many logs at once, serially, in a process pool or on Ray: `fleet eval` a policy, "
+              "`fleet learn` one Q-table, `fleet sweep` reward weights"),
 }
 
 
