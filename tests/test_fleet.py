@@ -1,6 +1,6 @@
 """``respecd fleet``: the same reports serially, in a process pool and on a local Ray instance, in
 any order; a damaged log reported while the rest run; one table from many logs, exactly what one
-learner fed them in order holds; sweeps from the logged reward terms."""
+learner fed them in order holds; sweeps from the logged reward terms; the bench's figures."""
 
 from __future__ import annotations
 
@@ -209,6 +209,17 @@ def test_reweighed_rewards_move_by_the_changed_term_alone(fleet_logs: list[Path]
     new = old.model_copy(update={"beta": old.beta + 0.3, "gamma": old.gamma})
     for step, reward in zip(log.steps, rewards(log.steps, old, new), strict=True):
         assert reward == pytest.approx(step.reward - 0.3 * step.terms["power_w"], abs=1e-9)
+
+
+def test_bench_fleet_reports_speedup_overhead_and_one_digest(fleet_logs: list[Path], tmp_path: Path, cli) -> None:
+    out = tmp_path / "bench.json"
+    ran = cli("bench", "fleet", "--use", *map(str, fleet_logs[:3]), "--workers", "1,2", "--json", str(out))
+    assert ran.returncode == 0, ran.stderr
+    figures = json.loads(out.read_text())
+    assert set(figures["speedup"]) == {"1", "2"} and figures["speedup"]["1"] == 1.0
+    assert figures["digests_agree"] and figures["overhead_ms_per_log"] >= 0
+    assert len(figures["load_avg"]["before"]) == 3 and figures["runs"]["2"]["pids"] == 2
+    assert "digest" in figures and figures["memory_mb"]["max_worker"] > 0
 
 
 def test_logs_are_files_folders_globs_and_urls(tmp_path: Path) -> None:

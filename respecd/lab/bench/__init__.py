@@ -20,4 +20,5 @@ BENCHES: dict[str, str] = {
     "soak": "respecd.lab.bench.soak",
     "peers": "respecd.lab.bench.peers",
     "attacks": "respecd.lab.bench.attacks",
+    "fleet": "respecd.lab.bench.fleet",
 }
