@@ -10,14 +10,20 @@ TORCH_SPEC ?= torch==2.13.0
 TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
 BIN := $(VENV)/bin
 ARGS ?=
+# the package's extras to install: add fleet for `respecd fleet --address` on Ray (and its tests:
+# `make test EXTRAS=test,lab,fleet`; without it they skip)
+EXTRAS ?= test,lab
+comma := ,
+# one stamp per set of extras: another EXTRAS installs again
+INSTALLED := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
 SHARED ?= ../shared
 
 .PHONY: install run test test-fast bench bench-peers weights weights-rgbt weights-rgbt-hituav lint clean
 
-install: $(VENV)/.installed
+install: $(INSTALLED)
 
-$(VENV)/.installed: pyproject.toml Makefile
+$(INSTALLED): pyproject.toml Makefile
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	@index="$(TORCH_INDEX)"; \
@@ -27,7 +33,7 @@ $(VENV)/.installed: pyproject.toml Makefile
 	$(BIN)/pip install --quiet --no-deps "$(TORCH_SPEC)" $${index:+--extra-index-url $$index}
 	$(BIN)/pip install --quiet "$(TORCH_SPEC)"  # its dependencies, from the usual indexes
 	# setuptools' note on every editable install whose packages are mapped (respecd.drivers <- drivers/)
-	PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip install --quiet -e ".[test,lab]"
+	PYTHONWARNINGS="ignore:Editable installation" $(BIN)/pip install --quiet -e ".[$(EXTRAS)]"
 	touch $@
 
 # one quick look at an index (pip would retry an unreachable one five times, a warning each)
