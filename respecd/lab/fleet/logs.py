@@ -35,6 +35,22 @@ class LogRef:
     def remote(self) -> bool:
         return "://" in self.location and not self.location.startswith("file://")
 
+    def size(self) -> int:
+        """Bytes on this machine (a rosbag2 folder: its files); 0 when remote or unreadable."""
+        if self.remote:
+            return 0
+        path = Path(self.location.removeprefix("file://"))
+        try:
+            return sum(p.stat().st_size for p in path.rglob("*")) if path.is_dir() else path.stat().st_size
+        except OSError:
+            return 0
+
+
+def largest_first(refs: Sequence[LogRef]) -> list[int]:
+    """The order to hand logs out in: the biggest first, so the last to finish is a small one
+    (workers end together); by name among equals. Results do not depend on it."""
+    return sorted(range(len(refs)), key=lambda i: (-refs[i].size(), refs[i].name))
+
 
 def expand(specs: Sequence[str]) -> list[LogRef]:
     """Files, folders (their logs, recursively) and globs, each log once, sorted by name.

@@ -15,7 +15,7 @@ from respecd.lab.fleet import worker
 from respecd.lab.fleet.backends import Backend, WorkerLost, open_backend
 from respecd.lab.fleet.eval import EvalSpec, eval_log, outcome_of, pooled
 from respecd.lab.fleet.learn import Learned, learn
-from respecd.lab.fleet.logs import LogRef
+from respecd.lab.fleet.logs import LogRef, largest_first
 from respecd.lab.fleet.transitions import LogSteps, steps_of
 
 
@@ -45,12 +45,18 @@ def describe(used: Backend) -> dict[str, Any]:
 
 def run_map(used: Backend, fn: Callable[[Any, Any], Any], common: Any, refs: Sequence[LogRef],
             what: str) -> list[Any]:
-    """``fn(common, ref)`` for every log, a progress bar on a terminal."""
+    """``fn(common, ref)`` for every log, in ``refs``' order, handed out largest first; a progress
+    bar on a terminal."""
+    order = largest_first(refs)
     bar = _bar(len(refs), what)
     try:
-        return used.map(fn, common, refs, on_done=lambda _i, _r: bar.update(1))
+        answers = used.map(fn, common, [refs[i] for i in order], on_done=lambda _i, _r: bar.update(1))
     finally:
         bar.close()
+    results: list[Any] = [None] * len(refs)
+    for answer, i in zip(answers, order, strict=True):
+        results[i] = answer
+    return results
 
 
 def eval_fleet(refs: Sequence[LogRef], spec: EvalSpec, where: Where) -> dict[str, Any]:
