@@ -5,10 +5,11 @@ time) unless given logs (``--use``), then for each worker count: opens the backe
 short task per worker — start-up is the time that took beyond the tasks (processes, a pool's
 fork server importing torch, a Ray instance), each worker's cold start its first task's time
 beyond its replay (the detector's first load, opening a log) — then times ``fleet eval`` over
-all N logs. Per log, the overhead is what the wall time holds beyond
-the logs' own replay time shared over the workers (scheduling, transfer, imbalance). The
-results' digest (SHA-256 of every report without its timings) must be the same at every
-worker count. Timings depend on the machine's load: the load average is in the figures.
+all N logs, handed out largest first. Per log, the overhead is the wall time beyond the busiest
+worker's tasks, per task it ran (handing a log out, its result back); the imbalance (how much
+longer the busiest worker worked than the mean) is apart. The results' digest (SHA-256 of
+every report without its timings) must be the same at every worker count. Timings depend on
+the machine's load: the load average is in the figures.
 """
 
 from __future__ import annotations
@@ -86,7 +87,7 @@ def _record(folder: Path, n: int, seconds: float) -> list[Path]:
 
 def _timed(refs: list[Any], workers: int, address: str | None, policy: str) -> dict[str, Any]:
     from respecd.lab.fleet.eval import EvalSpec, eval_log, outcome_of
-    from respecd.lab.fleet.run import Where, backend
+    from respecd.lab.fleet.run import Where, backend, run_map
 
     began = time.perf_counter()
     with backend(Where(workers, address)) as used:
@@ -94,23 +95,30 @@ def _timed(refs: list[Any], workers: int, address: str | None, policy: str) -> d
         warm = used.map(eval_log, EvalSpec(policy, duration=1.0), [refs[0]] * workers)
         warm_s = time.perf_counter() - began - opened
         start = time.perf_counter()
-        answers = used.map(eval_log, EvalSpec(policy), refs)
+        answers = run_map(used, eval_log, EvalSpec(policy), refs, "logs")
         wall = time.perf_counter() - start
     outcomes = [outcome_of(r, a) for r, a in zip(refs, answers, strict=True)]
     warmed = [outcome_of(refs[0], a) for a in warm]
-    tasks = [o.timing.get("task_s", 0.0) for o in outcomes]
     rss = [o.timing["worker"]["max_rss_mb"] for o in [*outcomes, *warmed] if "worker" in o.timing]
     # a first task's time beyond its replay: imports left to it, the detector's load, opening the log
     cold = [o.timing["task_s"] - o.report["timing"]["wall_s"] for o in warmed if o.report is not None]
+    busy: dict[int, list[float]] = {}  # per worker process, its tasks' seconds
+    for o in outcomes:
+        busy.setdefault(o.timing.get("worker", {}).get("pid", 0), []).append(o.timing.get("task_s", 0.0))
+    critical = max(busy.values(), key=sum)  # the worker that finished last, as far as its tasks go
+    tasks = sum(sum(b) for b in busy.values())
     return {
         # the backend up and its workers started (a pool's fork server imports torch once; Ray's instance)
         "startup_s": round(opened + warm_s - max((o.timing.get("task_s", 0.0) for o in warmed), default=0.0), 3),
         "cold_start_s": sorted(round(c, 3) for c in cold),
-        "wall_s": round(wall, 3), "sum_task_s": round(sum(tasks), 3),
-        "overhead_ms_per_log": round(max(wall - sum(tasks) / workers, 0.0) / len(refs) * 1000, 1),
+        "wall_s": round(wall, 3), "sum_task_s": round(tasks, 3),
+        # what handing a log to a worker and its result back costs: the wall time beyond the tasks of the
+        # busiest worker, per task it ran; what the workers' loads differ by is the imbalance, apart
+        "overhead_ms_per_log": round(max(wall - sum(critical), 0.0) / len(critical) * 1000, 1),
+        "imbalance_s": round(sum(critical) - tasks / workers, 3),
         "failed": sorted(o.name for o in outcomes if o.error is not None),
         "digest": digest(outcomes), "max_worker_rss_mb": max(rss, default=None),
-        "pids": len({o.timing["worker"]["pid"] for o in outcomes if "worker" in o.timing}),
+        "pids": len(busy),
     }
 
 
@@ -147,7 +155,8 @@ def summary(figures: dict[str, Any]) -> str:
              f" -> {figures['load_avg']['after'][0]} on {figures['cpus']} CPUs"]
     for k, r in figures["runs"].items():
         lines.append(f"  {k} worker(s): {r['wall_s']:.1f} s, speed-up {figures['speedup'].get(k, '-')}, "
-                     f"overhead {r['overhead_ms_per_log']:.0f} ms/log, start-up {r['startup_s']:.1f} s, "
+                     f"overhead {r['overhead_ms_per_log']:.0f} ms/log, imbalance {r['imbalance_s']:.1f} s, "
+                     f"start-up {r['startup_s']:.1f} s, "
                      f"cold start {r['cold_start_s']} s, failed {len(r['failed'])}")
     lines.append(f"digest {figures['digest']} ({'the same' if figures['digests_agree'] else 'DIFFERS'} at every "
                  f"worker count); max worker RSS {figures['memory_mb']['max_worker']} MB")
