@@ -186,3 +186,41 @@ def test_shared_detectors_load_once_and_start_each_session_afresh(monkeypatch: p
         assert second.scores.value == second.scores.uniform and second.scores.update(1.0, None) == second.scores.uniform
     third = PerceptionStage(config, calibration=None, clock=ManualClock())._load()  # outside: loaded anew
     assert third is not first and len(loads) == 2
+
+
+async def test_a_shared_detector_waits_for_the_last_sessions_inference(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A stopped session's inference may still run (a loaded machine, past the stop's grace): the
+    next session on the shared detector starts only once it is done, from a fresh scene score."""
+    import respecd.perception.stage as stage_module
+    from respecd.perception.stage import share_detectors
+
+    release, running = threading.Event(), threading.Event()
+
+    class SlowDetector(FusionDetector):
+        def infer(self, frames, attribute):
+            running.set()
+            release.wait(30)
+            self.scores.update(5.0, {"rgb": 0.9, "thermal": 0.1})  # what its attribution leaves behind
+            return super().infer(frames, attribute)
+
+    config = PerceptionConfig(model=TINY, weights="tiny.pt", score_threshold=0.0)
+    monkeypatch.setattr(FusionDetector, "load",
+                        staticmethod(lambda c, calibration=None, exports=None: SlowDetector(FusionNet(TINY), c)))
+    monkeypatch.setattr(stage_module, "SHUTDOWN_TIMEOUT_S", 0.05)
+    with share_detectors():
+        first = PerceptionStage(config, calibration=None, clock=ManualClock())
+        bundles: DropOldestQueue[Bundle] = DropOldestQueue(4)
+        bundles.put(_bundle(0.0, 0))
+        task = asyncio.create_task(first.run(bundles, DropOldestQueue(4)), name="perception")
+        await asyncio.to_thread(running.wait, 30)
+        task.cancel()
+        await asyncio.gather(task, return_exceptions=True)  # stopped; its inference runs on
+        second = PerceptionStage(config, calibration=None, clock=ManualClock())
+        loading = asyncio.ensure_future(asyncio.to_thread(second._load))
+        try:
+            await asyncio.sleep(0.3)
+            assert not loading.done()  # waiting for the straggler
+        finally:
+            release.set()
+        detector = await asyncio.wait_for(loading, 30)
+    assert detector.scores.value == detector.scores.uniform

@@ -24,6 +24,7 @@ import asyncio
 import contextlib
 import dataclasses
 import json
+import threading
 from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -49,12 +50,22 @@ SHUTDOWN_TIMEOUT_S = 5.0  # longer than one forward+attribution at 1280x720 on a
 # that evaluates many logs one after another (a fleet's worker) loads each checkpoint once. Each
 # session still starts from a fresh scene score; the detector's other caches depend on input
 # sizes alone, so a shared detector answers as a fresh one does.
-_shared: dict[str, Any] | None = None
+_shared: dict[str, _Shared] | None = None
+
+
+@dataclasses.dataclass
+class _Shared:
+    """A shared detector, and the threads a stopped session left running an inference on it
+    (a fleet's machine under load can take longer than the stop's grace to finish one)."""
+
+    detector: Any
+    stragglers: list[threading.Thread] = dataclasses.field(default_factory=list)
 
 
 @contextlib.contextmanager
 def share_detectors() -> Iterator[None]:
-    """Within: sessions of this process share loaded detectors (one session at a time)."""
+    """Within: sessions of this process share loaded detectors (one session at a time: the next
+    waits for the last one's inference still running, which would change its scene score)."""
     global _shared
     before = _shared
     _shared = {} if before is None else before
@@ -105,6 +116,7 @@ class PerceptionStage:
         self.latency_model = latency_model
         self.on_inference: list[Callable[[Percept], None]] = []  # as produced, before any latency model
         self._detector = detector
+        self._shared_entry: _Shared | None = None  # the detector's, while share_detectors holds
         self._busy_until = float("-inf")
         self._attributed: Percept | None = None  # the newest percept with contributions
         self._executor: ThreadPoolExecutor | None = None
@@ -212,6 +224,8 @@ class PerceptionStage:
             return
         executor.shutdown(wait=False, cancel_futures=True)
         threads = list(getattr(executor, "_threads", ()))
+        if self._shared_entry is not None:  # the next session on this detector waits for them
+            self._shared_entry.stragglers = threads
         deadline = asyncio.get_running_loop().time() + SHUTDOWN_TIMEOUT_S
         while any(t.is_alive() for t in threads) and asyncio.get_running_loop().time() < deadline:
             await asyncio.sleep(0.01)
@@ -235,15 +249,17 @@ class PerceptionStage:
         torch.set_num_threads(self.config.torch_threads)
         if _shared is None:
             return FusionDetector.load(self.config, self.calibration, self.exports)
-        key = json.dumps([self.config.model_dump(mode="json"), {m: c.model_dump(mode="json") if c is not None
-                                                                else None for m, c in self.calibration.items()},
-                          str(self.exports)],
-                         sort_keys=True)
-        detector = _shared.get(key)
-        if detector is None:
-            detector = _shared[key] = FusionDetector.load(self.config, self.calibration, self.exports)
-        detector.reset_scene_scores()
-        return detector
+        calibration = {m: c.model_dump(mode="json") if c is not None else None for m, c in self.calibration.items()}
+        key = json.dumps([self.config.model_dump(mode="json"), calibration, str(self.exports)], sort_keys=True)
+        entry = _shared.get(key)
+        if entry is None:
+            entry = _shared[key] = _Shared(FusionDetector.load(self.config, self.calibration, self.exports))
+        for thread in entry.stragglers:  # the last session's inference ends before this one starts
+            thread.join()
+        entry.stragglers = []
+        entry.detector.reset_scene_scores()
+        self._shared_entry = entry
+        return entry.detector
 
     def _has_new_input(self, bundle: Bundle) -> bool:
         """True when a detector input (RGB or an aux modality) brings a frame not yet seen.
