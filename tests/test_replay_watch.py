@@ -26,6 +26,8 @@ from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 from real_camera import LLVIP, photos, write_log
 
+from respecd.drivers.replay import ACTION_RESOLUTIONS
+
 REPO = Path(__file__).resolve().parents[1]
 OP_MESSAGE_DATA = 1
 
@@ -87,7 +89,10 @@ def test_the_counterfactual_session_is_served_live(tmp_path: Path) -> None:
         proc.terminate()
         proc.communicate(timeout=30)
     image = cv2.imdecode(np.frombuffer(decoded["/sensors/rgb"].data, np.uint8), cv2.IMREAD_UNCHANGED)
-    assert image.shape == (512, 640, 3) and decoded["/sensors/rgb"].frame_id == "rgb"
+    # as the camera would have been configured: the log's 640x512 or a size the robot's camera offers
+    offered = {(640, 512), *ACTION_RESOLUTIONS["rgb"]}
+    assert image.shape[2] == 3 and (image.shape[1], image.shape[0]) in offered
+    assert decoded["/sensors/rgb"].frame_id == "rgb"
     assert decoded["/respecd/percept"]["latency_s"] > 0 and "detections" in decoded["/respecd/percept"]
 
 
