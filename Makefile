@@ -19,7 +19,7 @@ INSTALLED := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
 SHARED ?= ../shared
 
-.PHONY: install run test test-fast bench bench-peers weights weights-rgbt weights-rgbt-hituav lint clean
+.PHONY: install run test test-fast bench bench-peers latency-cpu weights weights-rgbt weights-rgbt-hituav lint clean
 
 install: $(INSTALLED)
 
@@ -60,6 +60,13 @@ bench: install
 # juhasch/xwr68xxisk and message_filters are not on PyPI: docs/PERFORMANCE.md "Peers".
 bench-peers: install
 	$(BIN)/pip install --quiet --no-deps ultralytics==8.4.190 torchvision==0.28.0
+
+# the detector latency tables of the experiment (docs/RESULTS.md "What it rests on"): this machine's CPU, measured
+# (process CPU time, median of 5, one torch thread; run it on a quiet machine), and the Orin Nano estimate derived
+# from published figures and the network's FLOPs (it reads the CPU table's attribution multiple: run it after)
+latency-cpu: install
+	$(BIN)/respecd experiment latency respecd/lab/experiment/latency_tables/cpu.json --clock cpu --repeats 5
+	$(BIN)/respecd experiment platforms orin-nano
 
 # builtin:sim-rover in nine stages (docs/PERCEPTION.md "The shipped checkpoint"): from scratch, a fine-tune on the
 # daylight-crossover world, then four fine-tunes where cut people stay targets (--keep-cut 0.4), strips zoom to

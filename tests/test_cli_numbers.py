@@ -31,7 +31,7 @@ from respecd.lab.bench.live import first_port
 
 REPO = Path(__file__).resolve().parents[1]
 TABLE = str(REPO / "respecd" / "control" / "tables" / "default-qtable.npz")
-LATENCY = str(REPO / "docs" / "reference-latency.json")
+LATENCY = str(REPO / "respecd" / "lab" / "experiment" / "latency_tables" / "cpu.json")
 T = "{tmp}"  # replaced by the test's own folder: nothing is written into the checkout
 
 # (arguments, the flag the error must name). Without the check each of these ran (minutes of

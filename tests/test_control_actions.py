@@ -6,7 +6,7 @@ import pytest
 
 from respecd.control.actions import ActionSpace, build_slots
 from respecd.control.baselines import heuristic_position, static_position
-from respecd.control.config import ActionSpaceConfig
+from respecd.control.config import ActionSpaceConfig, HeuristicRules
 from respecd.errors import ConfigError
 from respecd.sensors import Capabilities, DriverConfigBase, clamp_request
 
@@ -119,6 +119,38 @@ def test_heuristic_rules() -> None:
     assert all(loaded[n].rate_hz < _heuristic(space)[n].rate_hz for n in loaded)
     assert all(r.rate_hz >= 1.0 for r in _heuristic(space, illumination="dark", motion="still",
                                                      load="high").values())
+
+
+def test_engineered_rules_floor_unread_sensors_and_keep_the_radar_at_the_cameras_rate() -> None:
+    sensors = [*_sensors(), DriverConfigBase(driver="sim", name="depth", modality="depth", resolution=(640, 480))]
+    space = ActionSpace(build_slots(ActionSpaceConfig(depth_resolutions=((424, 240), (640, 480))), sensors), "moves")
+    tuned = HeuristicRules(unread_floor=True, radar_follows_cameras=True, still_rate_hz=1.0, fast_rate_hz=15.0,
+                           bright_rgb=(960, 540))
+    read = ("rgb", "thermal", "radar")
+
+    def rules(rules: HeuristicRules, **names: str) -> dict:
+        base = {"illumination": "bright", "motion": "still", "radar_density": "dense", "load": "low",
+                "sync": "good", "confidence": "medium", "dominant": "none"}
+        position = heuristic_position(space, {**base, **names}, rules, read)
+        return {s.name: r for s, r in zip(space.slots, space.requests(position), strict=True)}
+
+    old, new = rules(HeuristicRules()), rules(tuned)
+    assert old["radar"].rate_hz == 30.0 and old["depth"].rate_hz == 5.0  # dense: the radar would set the rate
+    assert new["radar"].rate_hz == new["cam"].rate_hz == 1.0 and new["radar"].mode == "range"
+    assert (new["depth"].resolution, new["depth"].rate_hz) == ((424, 240), 1.0)  # not read: its floor
+    assert new["cam"].resolution == (960, 540) and old["cam"].resolution == (1280, 720)
+    fast = rules(tuned, motion="fast")
+    assert fast["cam"].rate_hz == fast["flir"].rate_hz == 15.0 and fast["radar"].rate_hz <= 15.0
+    leaning = rules(tuned, confidence="low", dominant="radar")
+    assert leaning["radar"].rate_hz == 30.0  # the detector relies on the radar: it may run fast
+    assert rules(tuned, illumination="dark")["radar"].rate_hz <= 1.0  # cameras at 1 Hz (still): the radar too
+    assert rules(HeuristicRules(), illumination="dark") == _heuristic_with(space, read)  # the defaults change nothing
+
+
+def _heuristic_with(space: ActionSpace, read: tuple[str, ...]) -> dict:
+    names = {"illumination": "dark", "motion": "still", "radar_density": "dense", "load": "low", "sync": "good",
+             "confidence": "medium", "dominant": "none"}
+    return {s.name: r for s, r in zip(space.slots, space.requests(heuristic_position(space, names)), strict=True)}
 
 
 async def test_mapping_through_the_real_flir_one_driver_clamps_and_reports() -> None:

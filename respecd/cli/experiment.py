@@ -15,6 +15,8 @@ EXPERIMENTS: dict[str, str] = {
     "probe": "respecd.lab.experiment.probe",
     "latency": "respecd.lab.experiment.latency",
     "choose": "respecd.lab.experiment.choose",
+    "heuristic": "respecd.lab.experiment.heuristic",
+    "platforms": "respecd.lab.experiment.platforms",
 }
 
 

@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 from respecd.argtypes import positive_float, positive_int, seed
 from respecd.errors import InputError
+from respecd.lab.experiment.platforms import DEFAULT_PLATFORM, LATENCY_HELP
 from respecd.outputs import check_output_dir, check_output_file
 
 if TYPE_CHECKING:
@@ -40,10 +41,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--random-detector", action="store_true",
                         help="randomly initialised detector instead of the checkpoint (smoke tests only)")
     parser.add_argument("--latency-repeats", type=positive_int, default=3,
-                        help="timed calls per resolution (median; at least 1)")
-    parser.add_argument("--latency", type=Path, metavar="FILE",
-                        help="use the detector latency of a `bench scenarios --json` result instead of measuring "
-                             "it (the compute and latency terms of the reward, and the load factor, then repeat)")
+                        help="--latency measured: timed calls per resolution (median; at least 1)")
+    parser.add_argument("--latency", default=DEFAULT_PLATFORM, metavar="orin-nano|cpu|FILE|measured",
+                        help=f"{LATENCY_HELP}: the reward's compute and latency terms and the load factor rest on "
+                             f"it (default {DEFAULT_PLATFORM})")
     parser.add_argument("--optimistic", action="store_true",
                         help="save never-tried actions at their initial value (default: below the state's "
                              "learned values, so exploiting only takes actions it has tried)")
@@ -86,6 +87,7 @@ def main(args: argparse.Namespace) -> int:
     from respecd.config import load_profile
     from respecd.control.persist import load_into, read_table, resolve_state_dir, save_table, table_path
     from respecd.lab.experiment import latency as lat
+    from respecd.lab.experiment import platforms
     from respecd.lab.experiment.rollout import Piece, Rollout, controller_for
     from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
     from respecd.lab.experiment.training import TrainSettings, conservative, save_curve, train
@@ -102,13 +104,13 @@ def main(args: argparse.Namespace) -> int:
         from respecd.lab.experiment.trace import tracer_for
 
         tracer = tracer_for(probe.table, probe, args.trace, args.trace_block)
-    pinned = lat.load(args.latency, rgb_resolutions(probe)) if args.latency is not None else None
+    pinned = platforms.pinned(args.latency, rgb_resolutions(probe))  # a bad file fails first
     detector = load_detector(profile, args.weights, args.random_detector)
     evaluator = make_evaluator(detector, profile, not args.no_cache, args.cache_dir)
     rollout = Rollout(profile, evaluator, {}, args.samples_per_s)
     world = rollout.world(Piece("good-light-static", 0, 10.0))
-    rollout.latency = pinned or lat.measure(detector, lat.sim_frames(world, evaluator.inputs), rgb_resolutions(probe),
-                                            args.latency_repeats)
+    rollout.latency = pinned.latency if pinned else lat.measure(
+        detector, lat.sim_frames(world, evaluator.inputs), rgb_resolutions(probe), args.latency_repeats)
     latency_ms = lat.to_json(rollout.latency)
     print("latency (ms):", {k: round(v["forward_ms"]) for k, v in latency_ms.items()})
     table = probe.table
@@ -153,4 +155,4 @@ def _info(profile: Profile, args: argparse.Namespace, result: Any, evaluator: An
             "episode_reward": [round(r, 5) for r in result.episode_reward],
             "detector_fingerprint": evaluator.fingerprint, "seeds": args.seeds, "seed": args.seed,
             "weights": args.weights or profile.perception.weights,
-            "latency_ms": latency_ms, "latency_source": str(args.latency or "measured")}
+            "latency_ms": latency_ms, "latency_source": str(args.latency)}

@@ -16,6 +16,15 @@
      setting and top rate (feed what the detector relies on);
   6. load **high** → every rate one rung down and RGB one resolution down;
      sync **poor** → no rate above the middle rung (fewer stale frames).
+
+  ``controller.heuristic`` (``HeuristicRules``) adds what an engineer who knows the pipeline
+  would write, all off by default: the still and fast rates and the bright-light RGB size
+  as chosen values instead of fixed rungs (steps 2–3), then
+
+  7. a sensor the detector does not read → its cheapest setting at its lowest rate;
+  8. the radar no faster than the fastest camera, unless it is the dominant modality at
+     low confidence (the detector runs on every new input frame: a fast radar would set
+     its rate).
 """
 
 from __future__ import annotations
@@ -23,6 +32,11 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 from respecd.control.actions import ActionSpace, Position, Slot
+from respecd.control.config import HeuristicRules
+from respecd.messages import Resolution
+
+DOCUMENTED = HeuristicRules()
+CAMERAS = ("rgb", "thermal")
 
 
 def static_position(space: ActionSpace) -> Position:
@@ -41,22 +55,36 @@ def _setting_index(slot: Slot, value: str) -> int | None:
     return slot.settings.index(value) if value in slot.settings else None
 
 
-def heuristic_position(space: ActionSpace, names: Mapping[str, str]) -> Position:
-    """The rule-based target position for a state given as named bins."""
+def _rung(slot: Slot, rate_hz: float) -> int:
+    """The index of the slot's rate nearest ``rate_hz``."""
+    return min(range(len(slot.rates)), key=lambda i: abs(slot.rates[i] - rate_hz))
+
+
+def _size(slot: Slot, resolution: Resolution) -> int:
+    """The index of the slot's resolution nearest ``resolution`` in pixels."""
+    area = resolution[0] * resolution[1]
+    return min(range(len(slot.settings)),
+               key=lambda i: abs(_pixels(slot.settings[i]) - area))
+
+
+def _pixels(setting: object) -> int:
+    return setting[0] * setting[1] if isinstance(setting, tuple) else 0
+
+
+def heuristic_position(space: ActionSpace, names: Mapping[str, str], rules: HeuristicRules = DOCUMENTED,
+                       read: tuple[str, ...] | None = None) -> Position:
+    """The rule-based target position for a state given as named bins; ``read``: the
+    modalities the detector reads (rule 7; None: every one)."""
     cells = [[_mid(len(s.settings)), _mid(len(s.rates))] for s in space.slots]
     top = [len(s.rates) - 1 for s in space.slots]
     for i, slot in enumerate(space.slots):
         cell = cells[i]
-        light = names.get("illumination")
-        if slot.modality == "thermal" and light == "dark" or slot.modality == "rgb" and light == "bright":
-            cell[:] = [len(slot.settings) - 1, top[i]]
-        elif slot.modality == "rgb" and light == "dark" or slot.modality == "thermal" and light == "bright":
-            cell[:] = [0, _low(slot)]
+        _light_rule(slot, cell, names.get("illumination"), top[i], rules)
         motion = names.get("motion")
         if motion == "fast":
-            cell[1] = top[i]
+            cell[1] = top[i] if rules.fast_rate_hz is None else _rung(slot, rules.fast_rate_hz)
         elif motion == "still":
-            cell[1] = min(cell[1], _low(slot))
+            cell[1] = min(cell[1], _low(slot) if rules.still_rate_hz is None else _rung(slot, rules.still_rate_hz))
         if slot.modality == "radar":
             _radar_rule(slot, cell, names, top[i])
         if names.get("confidence") == "low" and names.get("dominant") == slot.modality:
@@ -67,7 +95,37 @@ def heuristic_position(space: ActionSpace, names: Mapping[str, str]) -> Position
                 cell[0] = max(cell[0] - 1, 0)
         if names.get("sync") == "poor":
             cell[1] = min(cell[1], _mid(len(slot.rates)))
+    if rules.unread_floor and read is not None:
+        for slot, cell in zip(space.slots, cells, strict=True):
+            if slot.modality not in read:
+                cell[:] = [0, 0]
+    if rules.radar_follows_cameras:
+        _radar_follows(space, cells, names)
     return tuple((s, r) for s, r in cells)
+
+
+def _light_rule(slot: Slot, cell: list[int], light: str | None, top: int, rules: HeuristicRules) -> None:
+    """Rule 2: dark → thermal up, RGB down; bright → RGB up (to ``bright_rgb``), thermal down."""
+    if slot.modality == "thermal" and light == "dark":
+        cell[:] = [len(slot.settings) - 1, top]
+    elif slot.modality == "rgb" and light == "bright":
+        richest = len(slot.settings) - 1
+        cell[:] = [richest if rules.bright_rgb is None else _size(slot, rules.bright_rgb), top]
+    elif slot.modality == "rgb" and light == "dark" or slot.modality == "thermal" and light == "bright":
+        cell[:] = [0, _low(slot)]
+
+
+def _radar_follows(space: ActionSpace, cells: list[list[int]], names: Mapping[str, str]) -> None:
+    """Rule 8: the radar's rate at most the fastest camera's, unless the detector leans on it."""
+    if names.get("confidence") == "low" and names.get("dominant") == "radar":
+        return
+    cameras = [s.rates[c[1]] for s, c in zip(space.slots, cells, strict=True) if s.modality in CAMERAS]
+    if not cameras:
+        return
+    for slot, cell in zip(space.slots, cells, strict=True):
+        if slot.modality == "radar":
+            allowed = [i for i, r in enumerate(slot.rates) if r <= max(cameras) + 1e-9]
+            cell[1] = min(cell[1], max(allowed, default=0))
 
 
 def _radar_rule(slot: Slot, cell: list[int], names: Mapping[str, str], top: int) -> None:

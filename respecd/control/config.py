@@ -228,6 +228,34 @@ class ActionSpaceConfig(StrictModel):
         return self
 
 
+class HeuristicRules(StrictModel):
+    """What the heuristic policy adds to the documented rules (respecd/control/baselines.py).
+    The defaults are the documented rules alone."""
+
+    unread_floor: bool = Field(
+        False,
+        description="Sensors the detector does not read (not among perception.model's inputs, e.g. depth) at their "
+        "cheapest setting and lowest rate: nothing the detector sees depends on them.",
+    )
+    radar_follows_cameras: bool = Field(
+        False,
+        description="The radar no faster than the fastest camera the rules chose, unless it is the dominant "
+        "modality at low confidence: the detector runs on every new frame of any input, so a radar at 15 Hz beside "
+        "cameras at 1 Hz would run it 15 times a second.",
+    )
+    still_rate_hz: float | None = Field(
+        None, ge=MIN_RATE_HZ, le=MAX_RATE_HZ,
+        description="Rate of every sensor when the motion bin is still (the nearest rung); null: the second rung.",
+    )
+    fast_rate_hz: float | None = Field(
+        None, ge=MIN_RATE_HZ, le=MAX_RATE_HZ,
+        description="Rate of every sensor when the motion bin is fast (the nearest rung); null: the top rung.",
+    )
+    bright_rgb: Resolution | None = Field(
+        None, description="RGB resolution in bright light (the nearest of the ladder); null: the richest."
+    )
+
+
 class ControllerConfig(StrictModel):
     enabled: bool = Field(True, description="Run the controller task.")
     policy: Policy = Field("learn", description="learn (online Q-learning), exploit (frozen table), static, heuristic.")
@@ -265,6 +293,8 @@ class ControllerConfig(StrictModel):
     reward: RewardWeights = Field(RewardWeights(), description="Reward weights.")
     learning: Learning = Field(Learning(), description="Q-learning hyper-parameters.")
     actions: ActionSpaceConfig = Field(ActionSpaceConfig(), description="Action space.")
+    heuristic: HeuristicRules = Field(HeuristicRules(), description="Rules of the heuristic policy beyond the "
+                                      "documented ones (default: none).")
 
     @field_validator("table_file")
     @classmethod

@@ -194,7 +194,8 @@ class Controller:
             target = static_position(self.space)
             return self.space.config_id(target), target
         if self.policy == "heuristic":
-            target = heuristic_position(self.space, self.states.names(bins))
+            target = heuristic_position(self.space, self.states.names(bins), self.config.heuristic,
+                                        self.detector_inputs)
             return self.space.config_id(target), target
         assert self.table is not None
         if self.policy == "exploit":

@@ -10,11 +10,13 @@ See docs/RESULTS.md for what the figures mean.
 from __future__ import annotations
 
 import argparse
+import os
 import time
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from respecd.argtypes import positive_float, positive_int, seed
+from respecd.lab.experiment.platforms import DEFAULT_PLATFORM, LATENCY_HELP
 from respecd.outputs import check_output_dir, check_output_file
 
 if TYPE_CHECKING:
@@ -46,11 +48,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--latency-repeats", type=positive_int,
                         help="timed calls per resolution, at least 1 (default 5, quick 2)")
     parser.add_argument("--latency-clock", choices=("wall", "cpu"), default="wall",
-                        help="time the detector calls in wall time (default) or in the process's CPU time "
-                             "(a shared, busy machine: what one quiet core would take, without the waits)")
-    parser.add_argument("--latency", type=Path, metavar="FILE",
-                        help="use the detector latency of a past run (its --json result) instead of measuring it: "
-                             "repeats that run's compute figures and load states")
+                        help="--latency measured: time the detector calls in wall time (default) or in the "
+                             "process's CPU time (a shared, busy machine: what one quiet core would take)")
+    parser.add_argument("--latency", default=DEFAULT_PLATFORM, metavar="orin-nano|cpu|FILE|measured",
+                        help=f"{LATENCY_HELP} (default {DEFAULT_PLATFORM})")
+    parser.add_argument("--old-heuristic", action="store_true",
+                        help="run the documented heuristic rules alone too, beside the tuned ones (old-heuristic)")
     parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                         help="progress bar on stderr (default: when stderr is a terminal)")
 
@@ -68,11 +71,13 @@ def _table_path(args: argparse.Namespace) -> Path:
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from respecd.config import load_profile
     from respecd.lab.experiment import latency as lat
+    from respecd.lab.experiment import platforms
     from respecd.lab.experiment.compare import run_sets
+    from respecd.lab.experiment.heuristic import TUNED, description
     from respecd.lab.experiment.rollout import Rollout, controller_for
     from respecd.lab.experiment.setup import load_detector, rgb_resolutions
 
-    start = time.monotonic()
+    start, load_before = time.monotonic(), os.getloadavg()
     check_output_file("--markdown", args.markdown, example="scenarios.md")  # written after every run: checked now
     check_output_file("--figure", args.figure, example="scenarios.png")
     if not args.no_cache:
@@ -81,7 +86,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     profile = load_profile(args.profile)
     table = _table_path(args)
     resolutions = rgb_resolutions(controller_for(profile, "static"))
-    pinned = lat.load(args.latency, resolutions) if args.latency is not None else None  # a bad file fails first
+    pinned = platforms.pinned(args.latency, resolutions)  # a bad file fails first
     detector = load_detector(profile, args.weights, args.random_detector)
     if args.log is not None:
         from respecd.lab.experiment.logbench import prepare_log
@@ -91,13 +96,15 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     else:
         evaluator, sets, frames_for, extra = _prepare_sim(args, profile, detector)
         people = _people(evaluator, profile)
-    rollout = Rollout(profile, evaluator, {}, args.samples_per_s)
     repeats = args.latency_repeats or (2 if args.quick else 5)
-    rollout.latency = pinned or lat.measure(detector, frames_for, resolutions, repeats, lat.CLOCKS[args.latency_clock])
+    latency = pinned or platforms.measured(
+        lat.measure(detector, frames_for, resolutions, repeats, lat.CLOCKS[args.latency_clock]), args.latency_clock)
+    rollout = Rollout(profile, evaluator, latency.latency, args.samples_per_s, latency.accelerator_w)
     windows = sum(max(1, int(round(p.duration_s / rollout.period))) for pieces in sets for p in pieces)
-    bar = _bar(args, 3 * windows)
+    bar = _bar(args, (4 if args.old_heuristic else 3) * windows)
     try:
-        result = run_sets(profile, rollout, sets, table, (lambda p, r: bar.update()) if bar else None, people)
+        result = run_sets(profile, rollout, sets, table, (lambda p, r: bar.update()) if bar else None, people,
+                          TUNED, args.old_heuristic)
     finally:
         if bar:
             bar.close()
@@ -107,13 +114,38 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         from respecd.lab.experiment.report import goals
 
         result["goals"] = goals(result)
-    result.update(latency_ms=lat.to_json(rollout.latency), latency_source=str(args.latency or "measured"),
-                  latency_clock=None if args.latency else args.latency_clock,
-                  table=str(table), detector_fingerprint=evaluator.fingerprint,
-                  cache={"hits": evaluator.cache.hits, "misses": evaluator.cache.misses},
-                  wall_s=round(time.monotonic() - start, 1))
+    result.update(latency_table=latency.label(), latency_ms=lat.to_json(rollout.latency),
+                  accelerator_w=rollout.accelerator_w, heuristic=description(TUNED), table=str(table),
+                  detector_fingerprint=evaluator.fingerprint,
+                  run=_run_facts(args, start, load_before, evaluator))
     _write_outputs(args, result)
     return result
+
+
+def _run_facts(args: argparse.Namespace, start: float, load_before: tuple[float, ...], evaluator: Any) -> dict:
+    """What differs between two runs of the same command: time, load, host, cache (the ``run`` key)."""
+    import platform
+
+    import torch
+
+    return {"wall_s": round(time.monotonic() - start, 1), "load_average_start": [round(x, 2) for x in load_before],
+            "load_average_end": [round(x, 2) for x in os.getloadavg()],
+            "cache": {"hits": evaluator.cache.hits, "misses": evaluator.cache.misses},
+            "host": {"machine": platform.machine(), "processor": _cpu_name(), "cpus": os.cpu_count(),
+                     "python": platform.python_version(), "torch": torch.__version__},
+            "latency_clock": args.latency_clock if args.latency == "measured" else None}
+
+
+def _cpu_name() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8").splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    import platform
+
+    return platform.processor()
 
 
 def _check(args: argparse.Namespace) -> None:
@@ -164,24 +196,25 @@ def summary(result: dict[str, Any]) -> str:
 
     spread = result.get("spread", {})
     sets = result.get("worlds", 1)
-    lines = [f"{'policy':<10} {'mAP@0.5':>8} {'compute ms/s':>13} {'energy J':>9} {'bandwidth MB/s':>15}"
-             + (f"   (pooled over {sets} world sets; [min, max] over sets)" if sets > 1 else "")]
+    lines = [f"latency table: {result.get('latency_table')}; heuristic: {result.get('heuristic', {}).get('name')}",
+             f"{'policy':<14} {'mAP@0.5':>8} {'load':>6} {'compute ms/s':>13} {'energy J':>9} {'MB/s':>8} "
+             f"{'read MB/s':>10}" + (f"   (pooled over {sets} world sets; [min, max] over sets)" if sets > 1 else "")]
     for policy, v in result.get("pooled", {}).items():
         m = "n/a" if v.get("map50") is None else f"{v['map50']:.3f}"
-        line = (f"{policy:<10} {m:>8} {v['compute_ms_per_s']:>13.0f} {v['energy_j']:>9.1f} "
-                f"{v['bandwidth_bps'] / 1e6:>15.2f}")
+        line = (f"{policy:<14} {m:>8} {v['accelerator_load']:>6.3f} {v['compute_ms_per_s']:>13.0f} "
+                f"{v['energy_j']:>9.1f} {v['bandwidth_bps'] / 1e6:>8.2f} {v['bandwidth_read_bps'] / 1e6:>10.2f}")
         if sets > 1 and policy in spread:
             s = spread[policy]
             line += (f"   mAP [{number(s['map50'][0], '.3f')}, {number(s['map50'][1], '.3f')}]"
-                     f" compute [{s['compute_ms_per_s'][0]:.0f}, {s['compute_ms_per_s'][1]:.0f}]"
-                     f" MB/s [{s['bandwidth_bps'][0] / 1e6:.2f}, {s['bandwidth_bps'][1] / 1e6:.2f}]")
+                     f" load [{s['accelerator_load'][0]:.3f}, {s['accelerator_load'][1]:.3f}]"
+                     f" read MB/s [{s['bandwidth_read_bps'][0] / 1e6:.2f}, {s['bandwidth_read_bps'][1] / 1e6:.2f}]")
         lines.append(line)
     lines += headline(result)
     missed = [g["goal"] for g in result.get("goals", []) if g["met"] is False]
     if result.get("goals"):
         lines.append(f"goals met: {len(result['goals']) - len(missed)} of {len(result['goals'])}"
                      + "".join(f"\n  not met: {g}" for g in missed))
-    lines.append(f"{len(result.get('scenarios', []))} scenario rows in {result.get('wall_s', 0):.0f} s; "
+    lines.append(f"{len(result.get('scenarios', []))} scenario rows in {result.get('run', {}).get('wall_s', 0):.0f} s; "
                  "all figures: --json OUT (and --markdown, --figure)")
     return "\n".join(lines)
 

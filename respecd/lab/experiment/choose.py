@@ -3,7 +3,7 @@
 The rule was fixed before any held-out world was scored: count the headline's criteria a
 candidate's validation run meets (every goal of ``bench scenarios --json`` except "static is
 the ceiling", which does not depend on the table); most wins; ties go to the higher RL mAP@0.5
-(differences under 0.005 count as equal), then to the larger compute cut against the heuristic.
+(differences under 0.005 count as equal), then to the larger accelerator-load cut against the heuristic.
 
 usage: respecd experiment choose NAME=VAL.json NAME=VAL.json ...  (prints the winner's NAME)
 """
@@ -34,7 +34,7 @@ def choose(runs: dict[str, dict[str, Any]]) -> str:
     left = {n: r for n, r in runs.items() if criteria_met(r) == best}
     top_map = max(r["pooled"]["rl"]["map50"] for r in left.values())
     left = {n: r for n, r in left.items() if top_map - r["pooled"]["rl"]["map50"] < MAP_EQUAL}
-    return max(left, key=lambda n: left[n]["summary"]["rl_vs_heuristic"]["compute_reduction"])
+    return max(left, key=lambda n: left[n]["summary"]["rl_vs_heuristic"]["load_reduction"])
 
 
 def _read(arg: str) -> tuple[str, dict[str, Any]]:
@@ -43,7 +43,7 @@ def _read(arg: str) -> tuple[str, dict[str, Any]]:
         raise InputError(f"{arg}: expected NAME=FILE.json")
     try:
         doc = json.loads(Path(path).read_text(encoding="utf-8"))
-        doc["goals"], doc["pooled"]["rl"]["map50"], doc["summary"]["rl_vs_heuristic"]["compute_reduction"]
+        doc["goals"], doc["pooled"]["rl"]["map50"], doc["summary"]["rl_vs_heuristic"]["load_reduction"]
     except KeyError as err:
         raise InputError(f"{path}: no {err} in it: expected a `respecd bench scenarios --json` result") from err
     except (OSError, ValueError, TypeError) as err:
@@ -57,10 +57,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    """Each candidate's criteria, RL mAP@0.5 and compute on stderr; the winner's NAME on stdout."""
+    """Each candidate's criteria, RL mAP@0.5 and load cut on stderr; the winner's NAME on stdout."""
     candidates = dict(_read(a) for a in args.candidate)
     for n, r in candidates.items():
-        print(f"{n}: {criteria_met(r)} criteria, RL mAP@0.5 {r['pooled']['rl']['map50']:.3f}, compute "
-              f"{-100 * r['summary']['rl_vs_heuristic']['compute_reduction']:+.1f} % vs heuristic", file=sys.stderr)
+        print(f"{n}: {criteria_met(r)} criteria, RL mAP@0.5 {r['pooled']['rl']['map50']:.3f}, load "
+              f"{-100 * r['summary']['rl_vs_heuristic']['load_reduction']:+.1f} % vs heuristic", file=sys.stderr)
     print(choose(candidates))
     return 0

@@ -1,24 +1,32 @@
-"""The headline comparison: the scenarios in sequence under static, heuristic and RL, on
-one or more sets of worlds.
+"""The headline comparison: the scenarios in sequence under static, the heuristics and RL,
+on one or more sets of worlds.
 
 Each policy drives its own controller through the same pieces (same worlds, same sample
 instants), one continuous run per world set, as the paper runs its scenarios back to back;
-a fresh controller starts each set. Per scenario and policy, pooled over the sets:
+a fresh controller starts each set. The policies: ``static`` (everything at its maximum),
+``heuristic`` (the tuned rules, ``heuristic.py``), ``rl`` (the Q-table) and, on request,
+``old-heuristic`` (the documented rules alone). Per scenario and policy, pooled over the sets:
 
 * ``action``: the stabilized configuration, the one active longest over the scenario's
   second half (after the controller has settled);
-* ``map50``: COCO AP@0.5 of the detections at the sample instants against ground truth at
-  those instants;
-* ``compute_ms_per_s``: measured detector wall time per second (``latency.py``); / 1000 is
-  the share of one core;
-* ``energy_j``: the profile's power model over the configurations that ran;
-* ``bandwidth_bps``: sensing bytes per second (raw pixels, radar UART packets, IMU).
+* ``map50``: COCO AP@0.5 of what the daemon would have delivered at the sample instants
+  (the detector's last finished inference, stale as it is) against ground truth then;
+* ``accelerator_load``: the accelerator's busy share (0..1; the paper's GPU load: one
+  accelerator, a drop-oldest queue before it, ``accelerator.py``);
+* ``compute_ms_per_s``: detector time the configuration asks for per second (uncapped:
+  forward time x the rate of new detector inputs + one attribution); above 1000 one
+  accelerator cannot keep up and the daemon drops bundles (``dropped_per_window``);
+* ``energy_j``: the profile's sensor power model over the configurations that ran plus the
+  accelerator's power (``accelerator_j``: busy share x the platform's figure);
+* ``bandwidth_bps``: sensing bytes per second (raw pixels, radar UART packets, IMU), and
+  ``bandwidth_read_bps``: of the sensors the detector reads.
 
 ``pooled`` pools each policy's images over every scenario of every set into one mAP@0.5 and
-averages compute and bandwidth over every window; its energy is the mean over sets of one
+averages the per-window figures over every window; its energy is the mean over sets of one
 run's total. ``spread`` is each of those figures' [min, max] over the sets, ``sets`` the
-figures of each set. The summary compares the pooled figures:
-``compute_reduction = 1 - rl / baseline``, ``bandwidth_reduction`` likewise and
+figures of each set. The summary compares the pooled figures of RL with static and with the
+tuned heuristic: ``load_reduction = 1 - rl / baseline`` (accelerator load), likewise
+``compute_reduction``, ``bandwidth_reduction`` and ``bandwidth_read_reduction``, and
 ``map50_drop = baseline - rl`` (absolute). ``statistics`` says what each mAP rests on and how
 sure it is (``stats.py``: a bootstrap over worlds).
 """
@@ -32,6 +40,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from respecd.control.config import HeuristicRules
 from respecd.control.persist import fingerprint, read_table
 from respecd.errors import InputError
 from respecd.lab.detector.metrics import ImageResult, average_precision
@@ -42,7 +51,8 @@ if TYPE_CHECKING:
     from respecd.config import Profile
 
 POLICIES = ("static", "heuristic", "rl")
-METRICS = ("map50", "compute_ms_per_s", "energy_j", "bandwidth_bps")
+OLD_HEURISTIC = "old-heuristic"  # the documented rules alone, beside the tuned ones on request
+METRICS = ("map50", "accelerator_load", "compute_ms_per_s", "energy_j", "bandwidth_bps", "bandwidth_read_bps")
 Runs = list[list[WindowRecord]]  # one list of window records per world set
 
 
@@ -78,13 +88,17 @@ def stabilized(runs: Sequence[Sequence[WindowRecord]]) -> Any:
     return Counter(r.position for r in tails).most_common(1)[0][0]
 
 
-def _figures(runs: Runs) -> dict[str, Any]:
-    """Pooled mAP@0.5, mean compute and bandwidth per window, mean energy per set."""
+def figures(runs: Runs) -> dict[str, Any]:
+    """Pooled mAP@0.5, the per-window figures averaged over every window, energy per set."""
     windows = [r for records in runs for r in records]
     return {"map50": _map50([im for r in windows for im in r.images]),
+            "accelerator_load": round(float(np.mean([r.load.busy for r in windows])), 4),
             "compute_ms_per_s": round(float(np.mean([r.compute_ms for r in windows])), 1),
+            "dropped_per_window": round(float(np.mean([r.load.dropped for r in windows])), 2),
             "energy_j": round(float(np.mean([sum(r.energy_j for r in records) for records in runs])), 2),
-            "bandwidth_bps": round(float(np.mean([r.bandwidth_bps for r in windows])), 0)}
+            "accelerator_j": round(float(np.mean([sum(r.accelerator_j for r in records) for records in runs])), 2),
+            "bandwidth_bps": round(float(np.mean([r.bandwidth_bps for r in windows])), 0),
+            "bandwidth_read_bps": round(float(np.mean([r.bandwidth_read_bps for r in windows])), 0)}
 
 
 def _of(runs: Runs, scenario: str) -> Runs:
@@ -100,7 +114,7 @@ def scenario_rows(policy: str, controller: Any, runs: Runs) -> list[dict[str, An
     for scenario in scenarios_of(runs):
         mine = _of(runs, scenario)
         rows.append({"scenario": scenario, "policy": policy,
-                     "action": controller.space.describe_position(stabilized(mine)), **_figures(mine)})
+                     "action": controller.space.describe_position(stabilized(mine)), **figures(mine)})
     return rows
 
 
@@ -109,20 +123,21 @@ def _versus(rl: dict[str, Any], base: dict[str, Any]) -> dict[str, float | None]
         return round(1.0 - rl[key] / base[key], 4) if base[key] else None
 
     drop = base["map50"] - rl["map50"] if rl["map50"] is not None and base["map50"] is not None else None
-    return {"compute_reduction": reduction("compute_ms_per_s"), "map50_drop": None if drop is None else round(drop, 4),
-            "bandwidth_reduction": reduction("bandwidth_bps")}
+    return {"load_reduction": reduction("accelerator_load"), "compute_reduction": reduction("compute_ms_per_s"),
+            "map50_drop": None if drop is None else round(drop, 4), "bandwidth_reduction": reduction("bandwidth_bps"),
+            "bandwidth_read_reduction": reduction("bandwidth_read_bps")}
 
 
 def pooled(records: dict[str, Runs]) -> dict[str, dict[str, Any]]:
     """Per policy over every world set: pooled mAP@0.5, mean compute and bandwidth, energy per set."""
-    return {p: _figures(runs) for p, runs in records.items()}
+    return {p: figures(runs) for p, runs in records.items()}
 
 
 def spread(records: dict[str, Runs]) -> dict[str, dict[str, list[Any]]]:
     """Per policy and figure, [min, max] over the world sets."""
     out: dict[str, dict[str, list[Any]]] = {}
     for policy, runs in records.items():
-        per_set = [_figures([records_k]) for records_k in runs]
+        per_set = [figures([records_k]) for records_k in runs]
         out[policy] = {}
         for metric in METRICS:
             values = [v[metric] for v in per_set if v[metric] is not None]
@@ -135,44 +150,49 @@ def summary(totals: dict[str, dict[str, Any]]) -> dict[str, Any]:
             "rl_vs_heuristic": _versus(totals["rl"], totals["heuristic"])}
 
 
-def _controllers(profile: Profile, table_path: Path) -> dict[str, Any]:
-    return {"static": controller_for(profile, "static"), "heuristic": controller_for(profile, "heuristic"),
-            "rl": rl_controller(profile, table_path)}
-
-
-def run_all(profile: Profile, rollout: Rollout, pieces: list[Piece], table_path: Path,
-            on_window: Callable[[str, WindowRecord], None] | None = None) -> dict[str, Any]:
-    """Every policy over ``pieces`` (one world set)."""
-    return run_sets(profile, rollout, [pieces], table_path, on_window)
+def _controllers(profile: Profile, table_path: Path, rules: HeuristicRules, old: bool) -> dict[str, Any]:
+    """Every policy's controller; the tuned heuristic with ``rules``, the old one with the profile's."""
+    out = {"static": controller_for(profile, "static"), "heuristic": controller_for(profile, "heuristic", rules),
+           "rl": rl_controller(profile, table_path)}
+    if old:
+        out[OLD_HEURISTIC] = controller_for(profile, "heuristic")
+    return out
 
 
 def run_sets(profile: Profile, rollout: Rollout, sets: list[list[Piece]], table_path: Path,
              on_window: Callable[[str, WindowRecord], None] | None = None,
-             people: Callable[[Piece], int] | None = None) -> dict[str, Any]:
+             people: Callable[[Piece], int] | None = None, rules: HeuristicRules | None = None,
+             old_heuristic: bool = False) -> dict[str, Any]:
     """Every policy over every world set; the JSON body of ``respecd bench scenarios``.
 
-    ``people(piece)``: how many persons the piece's world holds (for the statistics).
+    ``people(piece)``: how many persons the piece's world holds (for the statistics);
+    ``rules``: the tuned heuristic's (default ``heuristic.TUNED``); ``old_heuristic``: run the
+    documented rules alone too.
     """
-    records: dict[str, Runs] = {p: [] for p in POLICIES}
+    from respecd.lab.experiment.heuristic import TUNED
+
+    policies = (*POLICIES, OLD_HEURISTIC) if old_heuristic else POLICIES
+    records: dict[str, Runs] = {p: [] for p in policies}
     controllers: dict[str, Any] = {}
     for pieces in sets:
-        controllers = _controllers(profile, table_path)  # each set starts fresh, as a new run of the robot
+        # each set starts fresh, as a new run of the robot
+        controllers = _controllers(profile, table_path, rules or TUNED, old_heuristic)
         for policy, controller in controllers.items():
             callback = (lambda r, p=policy: on_window(p, r)) if on_window else None
             records[policy].append(rollout.run(controller, pieces, callback))
-    rows = [row for p in POLICIES for row in scenario_rows(p, controllers[p], records[p])]
+    rows = [row for p in policies for row in scenario_rows(p, controllers[p], records[p])]
     order = {p.scenario: i for i, p in enumerate(sets[0])}
-    rows.sort(key=lambda r: (order[r["scenario"]], POLICIES.index(r["policy"])))
+    rows.sort(key=lambda r: (order[r["scenario"]], policies.index(r["policy"])))
     totals = pooled(records)
     return {"scenarios": rows, "summary": summary(totals), "pooled": totals, "spread": spread(records),
             "sets": _per_set(sets, records), "statistics": statistics(records, sets, people),
-            "settings": {p: _settings(controllers[p], records[p]) for p in POLICIES}}
+            "settings": {p: _settings(controllers[p], records[p]) for p in policies}}
 
 
 def _per_set(sets: list[list[Piece]], records: dict[str, Runs]) -> list[dict[str, Any]]:
     out = []
     for k, pieces in enumerate(sets):
-        totals = {p: _figures([records[p][k]]) for p in records}
+        totals = {p: figures([records[p][k]]) for p in records}
         out.append({"seeds": [piece.seed for piece in pieces], "pooled": totals, "summary": summary(totals)})
     return out
 

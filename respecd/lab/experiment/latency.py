@@ -113,7 +113,9 @@ def load(path: Path, resolutions: Iterable[tuple[int, int]]) -> dict[tuple[int, 
 def write_reference(out: Path, profile_ref: str = "builtin:sim-rover", weights: str | None = None, repeats: int = 5,
                     clock: str = "cpu", seed: int = 500) -> dict[str, Any]:
     """Measure the profile's detector as ``bench scenarios`` does before a run (the same
-    frames: scenario one of world ``seed``) and write a pinned latency file; scores nothing."""
+    frames: scenario one of world ``seed``) and write a pinned latency file; scores nothing.
+    A platform table's own facts already in ``out`` (its name, its accelerator's power and
+    source) are kept."""
     from respecd.config import load_profile
     from respecd.lab.experiment.rollout import Piece, controller_for
     from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
@@ -129,10 +131,20 @@ def write_reference(out: Path, profile_ref: str = "builtin:sim-rover", weights: 
                     f"thread(s)) of {weights or profile.perception.weights} (outcome fingerprint "
                     f"{evaluator.fingerprint}), measured by `respecd experiment latency` at load "
                     f"average {load}. train-policy --latency and bench scenarios --latency read it.",
+           **_platform_facts(out),
            "clock": clock, "repeats": repeats, "load_average": load, "detector_fingerprint": evaluator.fingerprint,
            "latency_ms": to_json(table)}
     out.write_text(json.dumps(doc, indent=2) + "\n", encoding="utf-8")
     return doc
+
+
+def _platform_facts(path: Path) -> dict[str, Any]:
+    try:
+        old = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    keys = ("platform", "estimate", "accelerator_w", "accelerator_w_source")
+    return {k: old[k] for k in keys if isinstance(old, dict) and k in old}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

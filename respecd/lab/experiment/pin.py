@@ -11,7 +11,7 @@ walking) — docs/RESULTS.md "Where the agent wins and where it loses".
 
 usage: respecd experiment pin good-light-static --seeds 500,507,514 \\
            --profile respecd/lab/profiles/sim-rover-per-sensor-slowest-44-immediate.yaml \\
-           --latency docs/reference-latency.json "rgb 640x360@1Hz"
+           --latency cpu "rgb 640x360@1Hz"
 """
 
 from __future__ import annotations
@@ -111,8 +111,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seeds", type=seed_list, required=True, help="world seeds, run in this order")
     parser.add_argument("--table", type=Path, help="Q-table (default: the shipped one)")
     parser.add_argument("--profile", default="builtin:sim-rover", help="the profile whose reward the terms follow")
-    parser.add_argument("--latency", type=Path, required=True,
-                        help="pinned detector latency (docs/reference-latency.json)")
+    parser.add_argument("--latency", default="orin-nano",
+                        help="latency table: orin-nano (default), cpu or a file")
     parser.add_argument("--duration", type=positive_float, default=20.0, help="seconds a world (default 20)")
     parser.add_argument("--cache-dir", type=Path)
     parser.add_argument("--random-detector", action="store_true", help="an untrained net (smoke tests only)")
@@ -124,7 +124,7 @@ def main(a: argparse.Namespace) -> int:
 
     from respecd.config import load_profile
     from respecd.control.shipped import shipped_table_path
-    from respecd.lab.experiment import latency as lat
+    from respecd.lab.experiment import platforms
     from respecd.lab.experiment.compare import rl_controller
     from respecd.lab.experiment.rollout import Piece, Rollout
     from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
@@ -136,7 +136,7 @@ def main(a: argparse.Namespace) -> int:
     table = a.table or shipped_table_path()
     reference_controller = rl_controller(profile, table)
     columns = [column_of(reference_controller, name) for name in a.column]
-    latency = lat.load(a.latency, rgb_resolutions(reference_controller))
+    latency = platforms.resolve(a.latency, rgb_resolutions(reference_controller)).latency
     evaluator = make_evaluator(load_detector(profile, random_init=a.random_detector), profile, True, a.cache_dir)
     rollout = Rollout(profile, evaluator, latency)
     pieces = [Piece(a.scenario, seed, a.duration) for seed in a.seeds]

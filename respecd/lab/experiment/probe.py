@@ -6,7 +6,7 @@ other sensor setting at its maximum, scored on the same worlds and instants as t
 Beside mAP@0.5 it reports the mean ConfAgg at the scored instants, the quality signal the agent's
 reward and state read, so one can see whether that signal rises where accuracy does.
 
-usage: respecd experiment probe --seed 500 --worlds 3 --duration 20 --latency FILE
+usage: respecd experiment probe --seed 500 --worlds 3 --duration 20 [--latency orin-nano|cpu|FILE]
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ def mean_conf_agg(images: list[ImageResult]) -> float:
     return sum(conf_agg(image.pred_scores.tolist()) for image in images) / len(images) if images else 0.0
 
 
-def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, latency: Path,
+def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, latency: str | Path,
           cache_dir: Path | None = None, random_detector: bool = False,
           score_threshold: float | None = None) -> dict[str, dict[str, dict[str, float]]]:
     """{"map50": {variant: {"pooled": mAP@0.5, scenario: mAP@0.5}}, "conf_agg": {variant: {"pooled":
@@ -42,7 +42,7 @@ def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, la
     untrained net, for tests; ``score_threshold``: the daemon's box threshold in place of the profile's, to
     see what it hides — the benchmark scores only the boxes the daemon delivers)."""
     from respecd.config import load_profile
-    from respecd.lab.experiment import latency as lat
+    from respecd.lab.experiment import platforms
     from respecd.lab.experiment.compare import world_sets
     from respecd.lab.experiment.rollout import Rollout, controller_for
     from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
@@ -52,7 +52,7 @@ def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, la
         perception = base.perception.model_copy(update={"score_threshold": score_threshold})
         base = base.model_copy(update={"perception": perception})
     evaluator = make_evaluator(load_detector(base, random_init=random_detector), base, True, cache_dir)
-    pinned = lat.load(latency, rgb_resolutions(controller_for(base, "static")))
+    pinned = platforms.resolve(latency, rgb_resolutions(controller_for(base, "static"))).latency
     actions = base.controller.actions
     pieces_sets = world_sets(base.simulation.scenarios, seed, worlds, duration_s)
     results: dict[str, dict[str, dict[str, float]]] = {"map50": {}, "conf_agg": {}}
@@ -80,7 +80,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=seed, default=500, help="first world seed (default 500: validation)")
     parser.add_argument("--worlds", type=positive_int, default=3, help="sets of worlds, at least 1 (default 3)")
     parser.add_argument("--duration", type=positive_float, default=20.0, help="seconds a world (default 20)")
-    parser.add_argument("--latency", type=Path, required=True, help="a pinned latency file")
+    parser.add_argument("--latency", default="orin-nano", help="latency table: orin-nano (default), cpu or a file")
     parser.add_argument("--cache-dir", type=Path)
     parser.add_argument("--json", type=Path, help="write the table here too")
     parser.add_argument("--score-threshold", type=unit_interval,

@@ -11,7 +11,7 @@ walking). With ``--resume`` only this run's updates are traced (the loaded value
 
 usage: respecd train-policy --trace bright/still/dense/medium/good/high/rgb --trace-block rgb \\
            --profile respecd/lab/profiles/sim-rover-per-sensor-slowest-44-immediate.yaml --episodes 54 --seeds 4 \\
-           --min-s 10 --max-s 20 --seed 0 --latency docs/reference-latency.json --out T.npz [--trace-json TRACE]
+           --min-s 10 --max-s 20 --seed 0 --latency cpu --out T.npz [--trace-json TRACE]
 """
 
 from __future__ import annotations
