@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import re
 from pathlib import Path
@@ -180,6 +181,7 @@ def test_bench_scenarios_json(trained: Path, profile_path: Path, tmp_path: Path,
     assert result["heuristic"]["rules"]["unread_floor"] and "old-heuristic" in result["heuristic"]["beside"]
     assert {"wall_s", "cache", "host", "load_average_start"} <= set(result["run"])
     assert "wall_s" not in result and "cache" not in result  # what moves between runs lives under "run"
+    assert result["table"].startswith(f"{trained} sha256:")
     static = [r for r in rows if r["policy"] == "static"]
     assert all(r["action"].startswith("rgb 640x360@30Hz thermal 320x240@9Hz") for r in static)
     assert "| scenario | policy |" in md.read_text() and png.stat().st_size > 10_000
@@ -239,6 +241,14 @@ def test_worlds_needs_the_simulator(trained: Path, profile_path: Path, tmp_path:
     assert cli_main([*base, "--worlds", "0"]) == 2
     err = capsys.readouterr().err
     assert "--worlds: a recorded log has one set" in err and "--worlds: expected at least 1" in err
+
+
+def test_the_shipped_table_is_named_without_the_checkout_path() -> None:
+    from respecd.lab.bench.scenarios import _table_label
+    from respecd.lab.experiment.setup import shipped_table_path
+
+    label = _table_label(argparse.Namespace(table=None), shipped_table_path())
+    assert label.startswith("shipped default-qtable.npz sha256:") and "/" not in label  # equal in any clone
 
 
 @pytest.mark.slow

@@ -68,6 +68,15 @@ def _table_path(args: argparse.Namespace) -> Path:
     return path
 
 
+def _table_label(args: argparse.Namespace, path: Path) -> str:
+    """The table as the JSON names it: the path as given, or the shipped one by name, never the
+    checkout's absolute path (two clones compare equal); its SHA-256 says which table it was."""
+    import hashlib
+
+    name = str(args.table) if args.table is not None else f"shipped {path.name}"
+    return f"{name} sha256:{hashlib.sha256(path.read_bytes()).hexdigest()[:16]}"
+
+
 def run(args: argparse.Namespace) -> dict[str, Any]:
     from respecd.config import load_profile
     from respecd.lab.experiment import latency as lat
@@ -115,7 +124,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
 
         result["goals"] = goals(result)
     result.update(latency_table=latency.label(), latency_ms=lat.to_json(rollout.latency),
-                  accelerator_w=rollout.accelerator_w, heuristic=description(TUNED), table=str(table),
+                  accelerator_w=rollout.accelerator_w, heuristic=description(TUNED), table=_table_label(args, table),
                   detector_fingerprint=evaluator.fingerprint,
                   run=_run_facts(args, start, load_before, evaluator))
     _write_outputs(args, result)
