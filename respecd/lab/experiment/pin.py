@@ -7,7 +7,7 @@ instants, and for each this prints mAP@0.5, the mean reward and its terms, compu
 whether the pinned run saw the same sequence of states. Same states and a higher reward mean that on these
 worlds the table's choice for that sensor is not what its reward asks for: an artefact of how its values were
 learned, or a hedge against what the same states lead to in other worlds (a still state whose people start
-walking) — docs/RESULTS.md "Where the agent wins and where it loses".
+walking) — docs/journal/2026-12-05-results-m44-uncapped.md "Where the agent wins and where it loses".
 
 usage: respecd experiment pin good-light-static --seeds 500,507,514 \\
            --profile respecd/lab/profiles/sim-rover-per-sensor-slowest-44-immediate.yaml \\
