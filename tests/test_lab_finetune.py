@@ -137,3 +137,65 @@ def test_bad_sim_mix_is_refused(tiny_hituav: Path, tmp_path: Path, capsys, share
 def test_sim_mix_needs_folder_data(tmp_path: Path, capsys) -> None:
     assert cli_main(["train", "--data", "sim", "--out", str(tmp_path / "x.pt"), "--sim-mix", "0.5"]) == 2
     assert "with --data a folder" in capsys.readouterr().err
+
+
+@pytest.fixture
+def tiny_tdp(shared_data: Path, tmp_path: Path) -> Path:
+    """Three real ground-level thermal images with people from thermal_dogs_people's train split (YOLO txt)."""
+    src = shared_data / "thermal_dogs_people" / "gray"
+    root = tmp_path / "tdp"
+    (root / "images" / "train").mkdir(parents=True)
+    (root / "labels" / "train").mkdir(parents=True)
+    shutil.copy(src / "data.yaml", root / "data.yaml")
+    people = [p for p in sorted((src / "labels" / "train").glob("*.txt"))
+              if any(line.split()[:1] == ["1"] for line in p.read_text().splitlines())][:3]
+    for label in people:
+        shutil.copy(label, root / "labels" / "train" / label.name)
+        shutil.copy(src / "images" / "train" / f"{label.stem}.png", root / "images" / "train" / f"{label.stem}.png")
+    return root
+
+
+def test_fine_tune_with_crops_from_another_folder(tiny_hituav: Path, tiny_tdp: Path, shared_data: Path,
+                                                  tmp_path: Path) -> None:
+    weights = shared_data.parent / "pretrained" / "yolo_fastest" / "yolo-fastest-1.1_body.weights"
+    out = tmp_path / "two.pt"
+    assert cli_main(["train", "--data", str(tiny_hituav), "--out", str(out), "--init", str(weights), "--aux", "thermal",
+                     "--freeze", "rgb,head,aux,fuse.*.rgb", "--epochs", "1", "--steps", "2", "--batch", "2",
+                     "--crop", "128x96", "--scale", "0.5", "--extra-data", f"{tiny_tdp}=0.4@0.5,1",
+                     "--threads", "1", "--quiet"]) == 0
+    train = checkpoint.read(out)["train"]
+    extra = json.loads(json.dumps(train["extra_data"]))
+    assert extra == [{"path": str(tiny_tdp), "share": 0.4, "zoom": [0.5, 1.0], "pool": 3}]
+    assert train["pool"] == 4 + 3 and train["curve"][0]["val_map50"] is not None  # validated on --data's val only
+
+
+class _Pool:
+    def __init__(self, tag: str) -> None:
+        self.tag = tag
+
+    def __len__(self) -> int:
+        return 1
+
+
+def test_crops_come_from_each_folder_at_its_share(monkeypatch) -> None:
+    from respecd.lab.detector import train as train_mod
+    from respecd.lab.detector.augment import AugmentConfig
+
+    monkeypatch.setattr(train_mod, "augment", lambda pool, rng, cfg, aux: (pool.tag, cfg.scale))
+    wide, near = AugmentConfig(), AugmentConfig(scale=(1.5, 4.0))
+    cfg = train_mod.TrainConfig(data="x", out=Path("x.pt"), batch=1000)
+    source = train_mod.CropSource([(_Pool("street"), wide, 0.7), (_Pool("drone"), near, 0.3)], cfg, ("thermal",))
+    batch, _ = source.draw(np.random.default_rng(0))
+    drone = [scale for tag, scale in batch if tag == "drone"]
+    assert 0.26 <= len(drone) / len(batch) <= 0.34 and set(drone) == {(1.5, 4.0)}  # each folder its own zoom
+
+
+@pytest.mark.parametrize(("spec", "message"), [("{d}=1.2", "0 < SHARE < 1"), ("{d}", "DIR=SHARE"),
+                                               ("{d}=0.6 --extra-data {d}=0.5", "add up to 1.1"),
+                                               ("/nonexistent=0.3", "expected a dataset folder"),
+                                               ("{d}=0.3@2,1", "LO <= HI")])
+def test_bad_extra_data_is_refused(tiny_hituav: Path, tmp_path: Path, capsys, spec: str, message: str) -> None:
+    extra = spec.format(d=tiny_hituav).split(" --extra-data ")
+    flags = [f for e in extra for f in ("--extra-data", e)]
+    assert cli_main(["train", "--data", str(tiny_hituav), "--out", str(tmp_path / "x.pt"), *flags]) == 2
+    assert message in capsys.readouterr().err

@@ -19,6 +19,7 @@ from respecd.outputs import check_output_file
 
 if TYPE_CHECKING:
     from respecd.lab.detector.augment import AugmentConfig
+    from respecd.lab.detector.train import ExtraFolder
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -82,6 +83,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sim-mix", type=float, default=0.0, metavar="P",
                         help="folder data: draw this share of steps from the simulator instead, 0 <= P < 1 "
                              "(default 0: the folder only)")
+    parser.add_argument("--extra-data", action="append", metavar="DIR=SHARE[@LO,HI]",
+                        help="folder data: another folder's train split gives SHARE (0..1) of the crops, zoomed by "
+                             "LO,HI if given (default --zoom); repeat for several; --data's val split validates")
     parser.add_argument("--pseudo-rgb", type=unit_interval, default=0.0,
                         help="thermal-only data: share 0..1 of crops whose RGB shows the thermal image (default 0)")
     parser.add_argument("--curve", type=Path, metavar="PNG",
@@ -115,6 +119,7 @@ def main(args: argparse.Namespace) -> int:
         data_scale=args.scale, val_scale=args.val_scale, val_limit=args.val_limit,
         scenario_weights=_scenario_weights(args.scenario_weight),
         resolution_weights=_resolution_weights(args.resolution_weight), sim_mix=args.sim_mix,
+        extra_data=_extra_data(args.extra_data or [], args.data),
         precision=args.precision,
     )
     aux = tuple(m for m in args.aux.split(",") if m)
@@ -194,6 +199,30 @@ def _check(args: argparse.Namespace) -> None:
         raise InputError(f"--out {args.out}: expected a .pt file name")
     if args.reinit and not args.init:
         raise InputError(f"--reinit {args.reinit}: re-initialises parts of --init's net; give --init")
+
+
+def _extra_data(items: list[str], data: str) -> tuple[ExtraFolder, ...]:
+    """['DIR=0.3@1.5,4', ...] -> the extra folders; their shares leave the --data folder some of the crops."""
+    from respecd.lab.detector.train import ExtraFolder
+
+    extras = []
+    for item in items:
+        path, sep, rest = item.rpartition("=")
+        share_text, _, zoom_text = rest.partition("@")
+        try:
+            share = float(share_text)
+        except ValueError:
+            share = -1.0
+        if not sep or not path or not 0 < share < 1:
+            raise InputError(f"--extra-data {item}: expected DIR=SHARE[@LO,HI] with 0 < SHARE < 1")
+        if data == "sim" or not Path(path).is_dir():
+            raise InputError(f"--extra-data {item}: expected a dataset folder, with --data a folder too")
+        zoom = _pair(zoom_text, "--extra-data", float, ",") if zoom_text else None
+        extras.append(ExtraFolder(path, share, zoom))
+    if sum(e.share for e in extras) >= 1:
+        raise InputError(f"--extra-data: the shares add up to {sum(e.share for e in extras):g}; "
+                         "they must leave --data some of the crops (below 1)")
+    return tuple(extras)
 
 
 def _with_radar_alone(augment: AugmentConfig, weight: float) -> AugmentConfig:

@@ -251,7 +251,7 @@ def scores(model: checkpoint.Net, views: dict[str, list[Sample]]) -> dict[str, f
 def _crops(samples: list[Sample], tcfg: Any, spec: ModelSpec) -> Any:
     from respecd.lab.detector.train import CropSource
 
-    return CropSource(samples, tcfg, spec.aux_modalities)
+    return CropSource([(samples, tcfg.augment, 1.0)], tcfg, spec.aux_modalities)
 
 
 def _settings(cfg: AdaptConfig, freeze: tuple[str, ...]) -> dict[str, Any]:

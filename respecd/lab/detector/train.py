@@ -15,9 +15,9 @@ import copy
 import math
 import time
 from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 import structlog
@@ -67,8 +67,27 @@ class TrainConfig:
     scenario_weights: dict[str, float] | None = None  # sim: draw weights (None: simdata.SCENARIO_WEIGHTS)
     resolution_weights: dict[tuple[int, int], float] | None = None  # sim: RGB size draw weights (None: uniform)
     sim_mix: float = 0.0  # folder data: share of steps drawn from the simulator instead (0: folder only)
+    extra_data: tuple[ExtraFolder, ...] = ()  # folder data: more folders' train splits, each a share of the crops
     precision: str = "fp32"  # "bf16": forward and backward under CPU autocast (weights and loss stay fp32)
     extra_loss: Callable[[nn.Module], torch.Tensor] | None = None  # a term added to every step's loss (adapt.py)
+
+
+@dataclass(frozen=True)
+class ExtraFolder:
+    """Another folder whose train split (never its val split) gives ``share`` of the folder crops, zoomed by
+    ``zoom`` (None: the run's ``--zoom``): e.g. drone-view thermal people, which need zooming in to be seen."""
+
+    path: str
+    share: float
+    zoom: tuple[float, float] | None = None
+
+
+class Samples(Protocol):
+    """Anything indexable of Samples: a folder read lazily (``FolderSource``) or a list (adapt's frames)."""
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, i: int, /) -> Sample: ...
 
 
 Batch = tuple[list["Sample"], tuple[int, int]]  # one step's samples, (width, height) of its input
@@ -110,16 +129,24 @@ class EMA:
 
 
 class CropSource:
-    """Training batches from a dataset of samples (a folder): crops and mosaics of one size."""
+    """Training batches from datasets of samples (folders): crops and mosaics of one size. Each crop comes
+    from one of ``pools`` (samples, augmentation, share), drawn by share."""
 
-    def __init__(self, pool, cfg: TrainConfig, aux: tuple[str, ...]) -> None:
-        self.pool, self.cfg, self.aux = pool, cfg, aux
+    def __init__(self, pools: list[tuple[Samples, AugmentConfig, float]], cfg: TrainConfig,
+                 aux: tuple[str, ...]) -> None:
+        self.pools, self.cfg, self.aux = pools, cfg, aux
+        shares = np.array([share for _, _, share in pools], dtype=np.float64)
+        self.shares = shares / shares.sum()
 
     def __len__(self) -> int:
-        return len(self.pool)
+        return sum(len(pool) for pool, _, _ in self.pools)
 
     def draw(self, rng: np.random.Generator):
-        batch = [augment(self.pool, rng, self.cfg.augment, self.aux) for _ in range(self.cfg.batch)]
+        batch = []
+        for _ in range(self.cfg.batch):
+            pool, augment_cfg, _ = self.pools[int(rng.choice(len(self.pools), p=self.shares))
+                                              if len(self.pools) > 1 else 0]
+            batch.append(augment(pool, rng, augment_cfg, self.aux))
         return batch, self.cfg.augment.size
 
 
@@ -161,9 +188,32 @@ def build_pool(cfg: TrainConfig, pcfg: PerceptionConfig):
         raise InputError(f"--data {cfg.data}: no training images (only a val split)")
     step = max(1, math.ceil(len(folder.val) / max(1, cfg.val_limit)))
     val_scale = cfg.val_scale or cfg.data_scale
-    crops = CropSource(FolderSource(folder.train, pcfg, cfg.data_scale), cfg, aux)
+    own_share = 1.0 - sum(extra.share for extra in cfg.extra_data)
+    pools: list[tuple[Samples, AugmentConfig, float]] = [
+        (FolderSource(folder.train, pcfg, cfg.data_scale), cfg.augment, own_share)]
+    for extra in cfg.extra_data:
+        other = open_folder(Path(extra.path), pcfg.model.classes, cfg.modality, cfg.seed, hold_out=False)
+        if not other.train:
+            raise InputError(f"--extra-data {extra.path}: no training images (only a val split)")
+        log.info("dataset", extra=extra.path, kind=other.kind, train=len(other.train), share=extra.share)
+        augment_cfg = replace(cfg.augment, scale=extra.zoom) if extra.zoom else cfg.augment
+        pools.append((FolderSource(other.train, pcfg, cfg.data_scale), augment_cfg, extra.share))
+    crops = CropSource(pools, cfg, aux)
     source = MixedSource(crops, _sim_stream(cfg, pcfg), cfg.sim_mix) if cfg.sim_mix > 0 else crops
     return source, FolderSource(folder.val[::step], pcfg, val_scale)
+
+
+def _crops(pool) -> CropSource:
+    """The folder crops of a pool (a folder's, or the folder half of a mix with the simulator)."""
+    return pool.folder if isinstance(pool, MixedSource) else pool
+
+
+def _extra_data_summary(cfg: TrainConfig, pool) -> list[dict]:
+    """Each ``--extra-data`` folder with its train split's size (none with the simulator's pool: refused there)."""
+    if not cfg.extra_data:
+        return []
+    return [{**asdict(extra), "pool": len(source)}
+            for extra, (source, _, _) in zip(cfg.extra_data, _crops(pool).pools[1:], strict=True)]
 
 
 def _optimizer(model: nn.Module, cfg: TrainConfig) -> torch.optim.Optimizer:
@@ -222,6 +272,7 @@ def train(cfg: TrainConfig, pcfg: PerceptionConfig | None = None, data: tuple | 
         "seed": cfg.seed,
         "augment": asdict(cfg.augment),
         "sim_mix": cfg.sim_mix,
+        "extra_data": _extra_data_summary(cfg, pool),
         "precision": cfg.precision,
         "threads": cfg.threads,
         "scenario_weights": sim.weights if sim is not None else None,
