@@ -130,3 +130,44 @@ def test_a_checkpoint_with_one_joint_fusion_kernel_loads(weights: Path, pair) ->
     with torch.inference_mode():
         for a, b in zip(model(x, torch.ones(1, 1)), fresh(x, torch.ones(1, 1)), strict=True):
             assert torch.equal(a, b)
+
+
+def test_rgb_aware_fusion_changes_only_what_both_cameras_see_together(weights: Path, pair, tmp_path: Path) -> None:
+    """``rgb_aware_fusion``: W_both starts as W_aux (the import is unchanged) and acts only where RGB is on as
+    well; each sensor alone goes through exactly the maps it had, and W_aux no longer acts beside RGB."""
+    plain = from_darknet(SPEC, weights).eval()
+    aware_spec = SPEC.model_copy(update={"rgb_aware_fusion": True})
+    aware = from_darknet(aware_spec, weights).eval()
+    rgb, ir = pair
+    inputs = {"both": (torch.cat([rgb, ir], 1), torch.ones(1, 1)),
+              "rgb": (torch.cat([rgb, torch.zeros_like(ir)], 1), torch.zeros(1, 1)),
+              "thermal": (torch.cat([torch.zeros_like(rgb), ir], 1), torch.ones(1, 1))}
+    with torch.inference_mode():
+        for x, presence in inputs.values():
+            for a, b in zip(plain(x, presence), aware(x, presence), strict=True):
+                assert torch.equal(a, b)  # W_both = W_aux at import
+        for fuse in aware.fuse:
+            fuse.both.weight.normal_(0, 0.05)  # as if trained
+        for fuse in plain.fuse:
+            fuse.aux.weight.mul_(3)  # and W_aux too
+        for fuse, mine in zip(aware.fuse, plain.fuse, strict=True):
+            fuse.aux.weight.copy_(mine.aux.weight)
+        out = {name: aware(x, presence) for name, (x, presence) in inputs.items()}
+        for name in ("rgb", "thermal"):
+            for a, b in zip(plain(*inputs[name]), out[name], strict=True):
+                assert torch.equal(a, b), name
+        assert any((a - b).abs().max() > 1e-3 for a, b in zip(plain(*inputs["both"]), out["both"], strict=True))
+        two = torch.cat([inputs["both"][0], inputs["thermal"][0]])  # per image in a batch
+        batched = aware(two, torch.ones(2, 1))
+        for i, name in enumerate(("both", "thermal")):
+            for a, b in zip(batched, out[name], strict=True):
+                torch.testing.assert_close(a[i:i + 1], b, rtol=0, atol=1e-5)
+        for fuse in aware.fuse:
+            fuse.aux.weight.zero_()  # thermal alone's map does not act beside RGB
+        for a, b in zip(aware(*inputs["both"]), out["both"], strict=True):
+            assert torch.equal(a, b)
+    path = tmp_path / "aware.pt"
+    checkpoint.save(path, aware, {"data": "unit-test"})
+    loaded, _ = checkpoint.load(str(path))
+    assert loaded.spec.rgb_aware_fusion and all(torch.equal(a.both.weight, b.both.weight)
+                                                for a, b in zip(aware.fuse, loaded.fuse, strict=True))

@@ -50,6 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="non-RGB modalities of a new net, in order (default thermal,radar)")
     parser.add_argument("--aux-scale", type=positive_float, default=1.0,
                         help="Darknet nets: backbone 2 sees the aux planes at this scale (default 1.0)")
+    parser.add_argument("--rgb-aware-fusion", action="store_true",
+                        help="Darknet nets from .weights: the aux evidence gets its own 1x1 map while RGB is on too "
+                             "(fuse.*.both, started as W_aux): the aux sensors alone and beside RGB train apart")
     parser.add_argument("--freeze", default="",
                         help="comma-separated parts kept fixed, e.g. rgb,head,fuse or fuse.*.rgb")
     parser.add_argument("--reinit", default="",
@@ -124,7 +127,8 @@ def main(args: argparse.Namespace) -> int:
     )
     aux = tuple(m for m in args.aux.split(",") if m)
     try:
-        pcfg = PerceptionConfig(model={"aux_modalities": aux, "aux_scale": args.aux_scale})
+        pcfg = PerceptionConfig(model={"aux_modalities": aux, "aux_scale": args.aux_scale,
+                                       "rgb_aware_fusion": args.rgb_aware_fusion})
     except ValueError as err:
         raise InputError(f"--aux {args.aux} --aux-scale {args.aux_scale}: expected modalities among thermal, radar, "
                          "depth and a scale above 0.1, at most 1") from err

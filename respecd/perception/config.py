@@ -65,6 +65,12 @@ class ModelSpec(StrictModel):
         "160x120 thermal camera upsampled into the RGB view holds no more detail at 0.5), and its features "
         "are resized back to backbone 1's: a quarter of the cost at 0.5.",
     )
+    rgb_aware_fusion: bool = Field(
+        False,
+        description="Darknet backbone only: backbone 2's evidence has one 1x1 map while the RGB image is black (W_aux: "
+        "the aux sensors alone) and another while it is not (W_both), both started as W_aux starts, so that the aux "
+        "sensors alone and beside an RGB camera that also sees are trained (or kept) apart.",
+    )
     aux_modalities: tuple[AuxModality, ...] = Field(
         ("thermal", "radar"),
         description="Non-RGB channels fed to backbone 2, in order (depth optional as a sixth channel).",

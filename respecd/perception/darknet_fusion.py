@@ -11,6 +11,12 @@ detects:
 
     fused = W_rgb * rgb + W_aux * g * (aux - a0),   g = 1 if any aux modality is present, else 0
 
+With ``ModelSpec.rgb_aware_fusion`` the evidence has one map per case, ``W_aux`` while the RGB image is
+black (the aux sensors alone) and ``W_both`` while it is not, both started where ``W_aux`` starts:
+thermal alone and thermal beside an RGB camera that also sees are then learned (or kept) apart, and
+training one does not move the other (one ``W_aux`` trained to carry detection alone adds too much
+where RGB already sees).
+
 ``a0`` is what the aux side gives for an input with nothing in it: backbone 1's features of
 a black image when both backbones share a cfg (so a black thermal image adds exactly nothing
 at import), else backbone 2's features of an all-zero input. It is computed once per input
@@ -57,15 +63,22 @@ def cfg_text(backbone: str) -> tuple[str, str]:
 
 class Fuse(nn.Module):
     """One fusion point: a 1x1 convolution over [rgb, aux], held as its two halves so that either can be
-    trained alone (``--freeze fuse.*.rgb``); the sum of the halves is the convolution of the concatenation."""
+    trained alone (``--freeze fuse.*.rgb``); the sum of the halves is the convolution of the concatenation.
+    With ``rgb_aware`` a third map ``both`` replaces the aux half where the RGB camera is on."""
 
-    def __init__(self, c_rgb: int, c_aux: int) -> None:
+    def __init__(self, c_rgb: int, c_aux: int, rgb_aware: bool = False) -> None:
         super().__init__()
         self.rgb = nn.Conv2d(c_rgb, c_rgb, 1, bias=False)
         self.aux = nn.Conv2d(c_aux, c_rgb, 1, bias=False)
+        self.both = nn.Conv2d(c_aux, c_rgb, 1, bias=False) if rgb_aware else None
 
-    def forward(self, rgb: torch.Tensor, aux: torch.Tensor) -> torch.Tensor:
-        return self.rgb(rgb) + self.aux(aux)
+    def forward(self, rgb: torch.Tensor, aux: torch.Tensor, rgb_on: torch.Tensor | None = None) -> torch.Tensor:
+        """``rgb_on``: (B, 1, 1, 1) 1 where the RGB image is not black (read only with ``rgb_aware``, needed then)."""
+        if self.both is None:
+            return self.rgb(rgb) + self.aux(aux)
+        if rgb_on is None:
+            raise ValueError("an rgb-aware fusion needs rgb_on (DarknetFusionNet.encode_rgb gives it)")
+        return self.rgb(rgb) + (1 - rgb_on) * self.aux(aux) + rgb_on * self.both(aux)
 
     def _load_from_state_dict(self, state_dict: dict[str, Any], prefix: str, *args: Any, **kwargs: Any) -> None:
         joint = state_dict.pop(prefix + "weight", None)  # checkpoints before the split: one (c, 2c) kernel
@@ -99,7 +112,7 @@ class DarknetFusionNet(nn.Module):
         self.rgb = darknet.DarknetNet(sections, 3, source, keep=range(self.split))
         self.aux = darknet.DarknetNet(aux_sections, 2 * n_aux, aux_source, keep=range(self.aux_split))
         self.head = darknet.DarknetNet(sections, 3, source, keep=range(self.split, len(layout.layers)))
-        self.fuse = nn.ModuleList(Fuse(layout.layers[t].channels, aux_layout.layers[a].channels)
+        self.fuse = nn.ModuleList(Fuse(layout.layers[t].channels, aux_layout.layers[a].channels, spec.rgb_aware_fusion)
                                   for t, a in zip(self.taps, self.aux_taps_at, strict=True))
         self._empty: dict[tuple[str, int, int, str], Taps] = {}  # f0 and a0 per input size
         self.engine: Engine | None = None  # set by FusionDetector.load for runtime onnxruntime / openvino
@@ -113,11 +126,16 @@ class DarknetFusionNet(nn.Module):
         return self.fuse_taps(self.encode_rgb(x[:, :3]), self.encode_aux(x[:, 3:], presence))
 
     def encode_rgb(self, rgb: torch.Tensor) -> Taps:
-        """(B, 3, H, W) -> backbone 1's features at the head's taps; a black image (RGB off) from the cache."""
+        """(B, 3, H, W) -> backbone 1's features at the head's taps, a black image's (RGB off) from the cache;
+        with ``rgb_aware_fusion`` one more tensor after them, (B, 1, 1, 1) 1 where the image is not black
+        (``rgb_on``: the fusion reads it, and an exported fusion graph takes it as its input ``rgb_on``)."""
         b, _, h, w = rgb.shape
-        if bool((rgb == 0).all()) and not self.rgb.training:
-            return tuple(f.expand(b, -1, -1, -1) for f in self.black_features(h, w, rgb))  # RGB off: no pass
-        return self.rgb_taps(rgb)
+        on = (rgb.flatten(1).amax(1) > 0).to(rgb.dtype)[:, None, None, None]
+        if not bool(on.any()) and not self.rgb.training:
+            taps = tuple(f.expand(b, -1, -1, -1) for f in self.black_features(h, w, rgb))  # RGB off: no pass
+        else:
+            taps = self.rgb_taps(rgb)
+        return (*taps, on) if self.spec.rgb_aware_fusion else taps
 
     def encode_aux(self, planes: torch.Tensor, presence: torch.Tensor | None = None) -> Taps:
         """(B, A, H, W) aux planes -> the evidence backbone 2 adds at each tap: its features less those of an
@@ -131,14 +149,16 @@ class DarknetFusionNet(nn.Module):
         return tuple(gate * (f - f0) for f, f0 in zip(aux, empty, strict=True))
 
     def fuse_taps(self, rgb: Taps, evidence: Taps) -> list[torch.Tensor]:
-        """Each tap's 1x1 fusion of backbone 1's features and the evidence (resized to them), then the head."""
+        """Each tap's 1x1 fusion of backbone 1's features (``encode_rgb``: with ``rgb_on`` last when the fusion
+        is rgb-aware) and the evidence (resized to them), then the head."""
         if self.engine is not None:
             return list(self.engine("fuse", *rgb, *evidence))
         store: dict[int, torch.Tensor] = {}
-        for t, r, e, fuse in zip(self.taps, rgb, evidence, self.fuse, strict=True):
+        features, rgb_on = (rgb[:-1], rgb[-1]) if self.spec.rgb_aware_fusion else (rgb, None)
+        for t, r, e, fuse in zip(self.taps, features, evidence, self.fuse, strict=True):
             if e.shape[-2:] != r.shape[-2:]:
                 e = F.interpolate(e, size=r.shape[-2:], mode="bilinear", align_corners=False)
-            store[t] = fuse(r, e)
+            store[t] = fuse(r, e, rgb_on)
         self.head.run(None, self.split, len(self.head.layers), store)
         return [store[i] for i in self.head.yolo_indices]
 
@@ -192,13 +212,15 @@ class DarknetFusionNet(nn.Module):
         (backbone 2 on its prepared input) and fusion + head. The caches and the gate stay in Python."""
         with torch.no_grad():
             z = self.aux_input(x[:, 3:], presence)
-            rgb, evidence = self.rgb_taps(x[:, :3]), self.encode_aux(x[:, 3:], presence)
+            rgb, evidence = self.encode_rgb(x[:, :3]), self.encode_aux(x[:, 3:], presence)
         n, heads = len(self.taps), len(self.head.yolo_indices)
+        fuse_in = (*names("rgb", n), *(("rgb_on",) if self.spec.rgb_aware_fusion else ()), *names("aux", n))
+        cut = len(rgb)
         return [
             Part("rgb", Call(self, lambda m, r: m.rgb_taps(r)), (x[:, :3],), ("rgb",), names("rgb", n)),
             Part("aux", Call(self, lambda m, a: m.aux_taps(a)), (z,), ("aux",), names("aux", n)),
-            Part("fuse", Call(self, lambda m, *f: m.fuse_taps(f[:n], f[n:])), (*rgb, *evidence),
-                 (*names("rgb", n), *names("aux", n)), names("yolo", heads)),
+            Part("fuse", Call(self, lambda m, *f: m.fuse_taps(f[:cut], f[cut:])), (*rgb, *evidence), fuse_in,
+                 names("yolo", heads)),
         ]
 
     def _constant(self, key: tuple[str, int, int, str], part: nn.Module, run: Callable[[], Taps]) -> Taps:
@@ -270,6 +292,8 @@ def from_darknet(spec: ModelSpec, weights: Path, aux_weights: Path | None = None
                 fuse.aux.weight.copy_(torch.eye(fuse.aux.out_channels)[:, :, None, None])
             else:
                 fuse.aux.weight.zero_()
+            if fuse.both is not None:
+                fuse.both.weight.copy_(fuse.aux.weight)
     return model
 
 
