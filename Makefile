@@ -19,7 +19,7 @@ INSTALLED := $(VENV)/.installed-$(subst $(comma),-,$(EXTRAS))
 
 SHARED ?= ../shared
 
-.PHONY: install run test test-fast bench bench-peers latency-cpu weights weights-rgbt weights-rgbt-hituav lint clean
+.PHONY: install run test test-fast bench bench-peers latency-cpu weights weights-sim-rover weights-rgbt weights-rgbt-hituav lint clean
 
 install: $(INSTALLED)
 
@@ -81,7 +81,11 @@ CURTAIN_AND_CUT := --scenario-weight behind-curtain=4,occlusion-partial=3
 # within 0.000-0.015 mAP@0.5 of the shipped file on the validation worlds (docs/PERCEPTION.md)
 WEIGHTS_FLAGS ?=
 SIZE_ZOOMS := --strip-zoom 0.7,2.0 --strip-zoom 640x360=0.8,1.25 --strip-zoom 960x540=0.7,1.6
-weights: install
+
+# every shipped checkpoint (docs/PERCEPTION.md "Checkpoints"): the simulator's, then the two real ones
+weights: weights-sim-rover weights-rgbt weights-rgbt-hituav
+
+weights-sim-rover: install
 	mkdir -p build
 	$(BIN)/respecd train $(WEIGHTS_FLAGS) --data sim --out build/sim-rover-base.pt --eval-frames 0
 	$(BIN)/respecd train $(WEIGHTS_FLAGS) --data sim --init build/sim-rover-base.pt --epochs 5 --lr 0.001 \
@@ -108,21 +112,28 @@ weights: install
 	$(BIN)/respecd calibrate --weights build/sim-rover-sizes.pt --out respecd/perception/weights/sim-rover.pt \
 	  --seed 2000003 --no-progress
 
-# builtin:rgbt (configs/spec-rover.yaml): Yolo-Fastest 1.1 body (RGB backbone and head, as trained on real photos)
-# with Yolo-Fastest xl's backbone on thermal at half resolution; only the 1x1 convolutions mapping xl's features
-# into the head are trained, on simulator pairs (~7 min of one core). docs/PERCEPTION.md "Real images".
+PRETRAINED := $(SHARED)/data/pretrained/yolo_fastest
+REAL := $(SHARED)/data/real
+
+# builtin:rgbt (configs/spec-rover.yaml): Yolo-Fastest 1.1 xl (a COCO detector trained on real photos) on both
+# backbones, thermal replicated to R, G, B at full size, the thermal evidence with one 1x1 map while RGB is black
+# (W_aux) and one while it is not (W_both). Everything pretrained stays frozen: RGB backbone, head and W_rgb = I (RGB
+# alone is the pretrained detector), the thermal backbone (its real-photo features) and W_both = I (both cameras on
+# is the pretrained sum). Only W_aux, thermal alone, trains: on real ground-level LWIR (thermal_dogs_people train)
+# and drone-view LWIR (HIT-UAV train, a quarter of the crops, zoomed in), the epoch chosen on thermal_dogs_people val.
 weights-rgbt: install
-	$(BIN)/respecd train --data sim --out respecd/perception/weights/rgbt.pt \
-	  --init $(SHARED)/data/pretrained/yolo_fastest/yolo-fastest-1.1_body.weights,$(SHARED)/data/pretrained/yolo_fastest/yolo-fastest-1.1-xl.weights \
-	  --aux thermal --aux-scale 0.5 --freeze rgb,head,aux,fuse.*.rgb --epochs 3 --steps 100 --lr 0.003 --eval-frames 0
+	$(BIN)/respecd train --data $(REAL)/thermal_dogs_people/gray --out respecd/perception/weights/rgbt.pt \
+	  --init $(PRETRAINED)/yolo-fastest-1.1-xl.weights --aux thermal --rgb-aware-fusion \
+	  --freeze rgb,head,aux,fuse.*.rgb,fuse.*.both --extra-data $(REAL)/hituav_thermal=0.25@1.5,4 \
+	  --epochs 6 --steps 60 --batch 16 --lr 0.003 --scale 1.0 --crop 320x256 --zoom 0.6,2.0 --no-progress
 
 # builtin:rgbt-hituav: backbone 2 fine-tuned on HIT-UAV's real thermal train split (RGB backbone, head and
-# fusion frozen), the epoch chosen on its val split; about an hour of one CPU core (the shipped file: epochs 1-5).
+# fusion frozen), the epoch chosen on its val split (100 of its images at scale 2).
 weights-rgbt-hituav: install
-	$(BIN)/respecd train --data $(SHARED)/data/real/hituav_thermal --out respecd/perception/weights/rgbt-hituav.pt \
-	  --init $(SHARED)/data/pretrained/yolo_fastest/yolo-fastest-1.1_body.weights --aux thermal \
-	  --freeze rgb,head,fuse --epochs 8 --steps 150 --batch 16 --lr 0.001 --scale 1.0 --val-scale 2.0 \
-	  --val-limit 100 --crop 320x256 --zoom 1.2,4 --patience 3
+	$(BIN)/respecd train --data $(REAL)/hituav_thermal --out respecd/perception/weights/rgbt-hituav.pt \
+	  --init $(PRETRAINED)/yolo-fastest-1.1_body.weights --aux thermal \
+	  --freeze rgb,head,fuse --epochs 5 --steps 150 --batch 16 --lr 0.001 --scale 1.0 --val-scale 2.0 \
+	  --val-limit 100 --crop 320x256 --zoom 1.2,4 --no-progress
 
 TYPECHECK := build/typecheck
 lint: install
