@@ -88,7 +88,8 @@ def test_spec_rover_profile_loads_the_shipped_real_checkpoint() -> None:
     assert profile.perception.weights == "builtin:rgbt"
     detector = FusionDetector.load(profile.perception.model_copy(update={"device": "cpu"}))
     assert isinstance(detector.model, DarknetFusionNet) and detector.channels == ("r", "g", "b", "thermal")
-    assert detector.model.spec.aux_backbone == "darknet:yolo-fastest-1.1-xl"  # the card's, docs/PERCEPTION.md
+    spec = detector.model.spec  # the card's, docs/PERCEPTION.md: xl on both backbones, one thermal map per case
+    assert (spec.backbone, spec.aux_backbone, spec.rgb_aware_fusion) == ("darknet:yolo-fastest-1.1-xl", None, True)
 
 
 XL = "yolo-fastest-1.1-xl"
