@@ -6,6 +6,7 @@ tests skip, saying why, where its package is not installed (``pip install -e '.[
 from __future__ import annotations
 
 import importlib.util
+import json
 from importlib import resources
 from pathlib import Path
 
@@ -34,7 +35,7 @@ def bundles() -> list[tuple[str, dict[str, Frame]]]:
     """The fixed inputs: a lit scene and a dark one with every sensor, the dark one without thermal and
     without RGB (a sensor switched off: zero planes, presence 0), a lit scene at 1280x720 (simulated,
     aligned by the simulator's calibration), and two real LLVIP visible/infrared pairs at 640x512
-    (pixel-aligned: ``real_pairs``)."""
+    (pixel-aligned: ``real_pairs``), the first also with RGB black and with thermal off."""
     from respecd.sim.render import render_lepton, render_radar, render_rgb
     from respecd.sim.world import SimulationConfig, World
 
@@ -63,7 +64,8 @@ def real_pairs() -> list[tuple[str, dict[str, Frame]]]:
         small = [cv2.resize(a, (640, 512), interpolation=cv2.INTER_AREA) for a in (rgb, ir)]
         frames = {"rgb": Frame("rgb", 0.0, 0, small[0]), "thermal": Frame("thermal", 0.0, 0, small[1])}
         pairs.append((f"LLVIP {key}", frames))
-    return pairs
+    frames = pairs[0][1]  # the first also with each camera off: RGB black takes rgbt's thermal-alone map
+    return pairs + [(f"{pairs[0][0]}, {off} off", {k: v for k, v in frames.items() if k != off}) for off in frames]
 
 
 @pytest.fixture(scope="module")
@@ -99,6 +101,7 @@ def assert_same(want: Percept, got: Percept, what: str) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.timeout(600)  # rgbt (xl on both cameras) ran past the default 120 s at load 20 on 2 cores
 @pytest.mark.parametrize("runtime", RUNTIMES)
 @pytest.mark.parametrize("weights", SHIPPED)
 def test_every_runtime_gives_torchs_detections_and_contributions(weights: str, runtime: str, exports: Path) -> None:
@@ -123,6 +126,31 @@ def compare(reference: FusionDetector, exported: FusionDetector, inputs: list[tu
             assert_same(want, got, f"{what} {name} attribute={attribute}")
             found += len(want.detections)
     return found
+
+
+@pytest.mark.parametrize("runtime", RUNTIMES)
+def test_rgbt_with_rgb_black_runs_its_thermal_alone_map_on_the_runtime(runtime: str, exports: Path,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """spec-rover's ``builtin:rgbt`` maps thermal one way alone and another beside RGB (``rgb_aware_fusion``):
+    its exported fusion graph takes whether RGB is on as an input, so a real LWIR frame with RGB black gives
+    torch's thermal-alone detections on the runtime, and so do the attribution's RGB-off passes."""
+    reference, exported = (detector("builtin:rgbt", name, exports, simulated=False) for name in ("torch", runtime))
+    manifest = json.loads(next(exports.glob("rgbt-*/manifest.json")).read_text(encoding="utf-8"))
+    assert "rgb_on" in manifest["graphs"]["fuse"]["inputs"]
+    frames = dict(real_pairs()[0][1])
+    thermal_only = {"thermal": frames["thermal"]}
+    want = {}
+    for name, inputs in (("both", frames), ("RGB black", thermal_only)):
+        for d in (reference, exported):
+            d.reset_scene_scores()
+        want[name] = reference.infer(inputs, attribute=True)
+        assert_same(want[name], exported.infer(inputs, attribute=True), f"rgbt {runtime} {name}")
+    assert len(want["RGB black"].detections) >= 2  # LLVIP's people, from thermal alone
+    encode_rgb = reference.model.encode_rgb  # the flag matters here: thermal alone through the map beside RGB
+    monkeypatch.setattr(reference.model, "encode_rgb", lambda rgb: (*encode_rgb(rgb)[:-1], rgb.new_ones(1, 1, 1, 1)))
+    reference.reset_scene_scores()
+    with pytest.raises(AssertionError):
+        assert_same(want["RGB black"], reference.infer(thermal_only, attribute=True), "rgbt, RGB on forced")
 
 
 def test_the_shipped_checkpoints_are_all_compared() -> None:
