@@ -32,6 +32,7 @@ def test_no_neighbour_means_no_process() -> None:
 
 
 @linux_only
+@pytest.mark.slow
 def test_bench_pipeline_reports_both_runs_and_their_ratio(tmp_path: Path) -> None:
     out = tmp_path / "bp.json"
     ran = run_cli("bench", "pipeline", "--seconds", "1", "--neighbour", "1", "--json", str(out))

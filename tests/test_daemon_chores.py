@@ -83,6 +83,7 @@ async def test_freed_heap_pages_go_back_while_the_daemon_runs(tmp_path: Path) ->
     structlog.reset_defaults()
 
 
+@pytest.mark.slow
 async def test_the_daemon_says_ready_status_watchdog_and_stopping(tmp_path: Path,
                                                                  monkeypatch: pytest.MonkeyPatch) -> None:
     folder = Path(tempfile.mkdtemp(prefix="rdc-", dir="/tmp"))  # AF_UNIX paths must be short

@@ -54,6 +54,7 @@ def test_reference_file_is_what_train_policy_and_bench_read(tmp_path) -> None:
     assert large.forward_s > small.forward_s  # more pixels, more work: a real measurement
 
 
+@pytest.mark.slow
 def test_platform_tables_name_their_source_and_the_orin_table_is_rederived_from_it(tmp_path) -> None:
     import json
 

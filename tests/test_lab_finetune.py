@@ -155,6 +155,7 @@ def tiny_tdp(shared_data: Path, tmp_path: Path) -> Path:
     return root
 
 
+@pytest.mark.slow
 def test_fine_tune_with_crops_from_another_folder(tiny_hituav: Path, tiny_tdp: Path, shared_data: Path,
                                                   tmp_path: Path) -> None:
     weights = shared_data.parent / "pretrained" / "yolo_fastest" / "yolo-fastest-1.1_body.weights"

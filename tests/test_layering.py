@@ -136,6 +136,7 @@ def test_only_the_runtime_back_ends_import_the_runtime_extras() -> None:
     assert not offenders, "\n".join(offenders)
 
 
+@pytest.mark.slow
 def test_the_runtime_torch_daemon_imports_no_runtime_extra() -> None:
     """Loading the shipped detector on runtime torch imports none of the extras (a fresh interpreter)."""
     import subprocess

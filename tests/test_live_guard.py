@@ -150,6 +150,7 @@ def test_origins_are_matched_by_scheme_host_and_port() -> None:
         LiveConfig(allowed_origins=["app.foxglove.dev"])
 
 
+@pytest.mark.slow
 async def test_a_viewer_that_stops_reading_is_dropped_and_logged_once() -> None:
     async with Rig(LiveConfig(stall_s=0.5, backlog=4)) as rig:
         with capture_logs() as logs:

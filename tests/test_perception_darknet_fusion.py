@@ -133,6 +133,7 @@ def test_a_checkpoint_with_one_joint_fusion_kernel_loads(weights: Path, pair) ->
             assert torch.equal(a, b)
 
 
+@pytest.mark.slow
 def test_rgb_aware_fusion_changes_only_what_both_cameras_see_together(weights: Path, pair, tmp_path: Path) -> None:
     """``rgb_aware_fusion``: W_both starts as W_aux (the import is unchanged) and acts only where RGB is on as
     well; each sensor alone goes through exactly the maps it had, and W_aux no longer acts beside RGB."""

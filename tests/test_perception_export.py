@@ -92,6 +92,7 @@ def test_check_config_names_the_runtime_line_a_machine_cannot_run(tmp_path: Path
 
 
 @needs_onnx
+@pytest.mark.slow
 def test_the_export_is_cached_by_checkpoint_and_redone_when_damaged(tmp_path: Path) -> None:
     from respecd.perception import checkpoint, export
 
@@ -111,6 +112,7 @@ def test_the_export_is_cached_by_checkpoint_and_redone_when_damaged(tmp_path: Pa
 
 
 @needs_onnx
+@pytest.mark.slow
 def test_respecd_export_writes_every_part_and_the_manifest(tmp_path: Path, capsys) -> None:
     out = tmp_path / "onnx"
     assert main(["export", "builtin:rgbt-hituav", "--to", "onnx", str(out)]) == 0

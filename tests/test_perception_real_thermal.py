@@ -26,6 +26,7 @@ def _found(detections, people: np.ndarray) -> int:
     return int((iou_matrix(people, boxes) >= 0.5).any(1).sum()) if len(boxes) else 0
 
 
+@pytest.mark.slow
 def test_the_real_rovers_thermal_path_alone_finds_people_on_real_lwir(shared_data: Path) -> None:
     config = PerceptionConfig(weights="builtin:rgbt", model=checkpoint.spec_of("builtin:rgbt"))
     detector = FusionDetector.load(config)

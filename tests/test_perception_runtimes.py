@@ -129,6 +129,7 @@ def compare(reference: FusionDetector, exported: FusionDetector, inputs: list[tu
 
 
 @pytest.mark.parametrize("runtime", RUNTIMES)
+@pytest.mark.slow
 def test_rgbt_with_rgb_black_runs_its_thermal_alone_map_on_the_runtime(runtime: str, exports: Path,
                                                                       monkeypatch: pytest.MonkeyPatch) -> None:
     """spec-rover's ``builtin:rgbt`` maps thermal one way alone and another beside RGB (``rgb_aware_fusion``):
@@ -158,6 +159,7 @@ def test_the_shipped_checkpoints_are_all_compared() -> None:
 
 
 @pytest.mark.parametrize("runtime", RUNTIMES)
+@pytest.mark.slow
 def test_the_inference_bench_times_the_runtime_beside_torch(runtime: str, tmp_path: Path,
                                                            monkeypatch: pytest.MonkeyPatch) -> None:
     """``respecd bench inference --runtime NAME``: CPU ms of forward and forward + attribution per size, and each

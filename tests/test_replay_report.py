@@ -113,6 +113,7 @@ def _long_learning_report() -> dict:
     return {"log": {"path": "/x/rover.mcap"}, "policies": policies}
 
 
+@pytest.mark.slow
 def test_the_figures_action_panel_has_no_overlapping_labels(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """What a person reads in the action panel (its y labels and the labels in it) never overlaps."""
     plt = pytest.importorskip("matplotlib.pyplot")
