@@ -66,15 +66,16 @@ class DriverContext:
 
     ``simulation`` is the profile's ``simulation:`` section (simulated drivers build their
     shared, seeded world from it); ``replay`` is an opened session log for replay drivers,
-    and ``decode_ahead`` tells them that every frame's pixels will be read (no detector: the
-    controller's features read each frame), so their read-ahead threads decode them too
-    (else a frame is decoded when something first reads its pixels).
+    and ``decode_ahead`` names the modalities whose every frame's pixels will be read (no
+    detector: the controller's features read each RGB and thermal frame), so their read-ahead
+    threads decode them too (else a frame is decoded when something first reads its pixels,
+    and a depth frame nobody reads is never decoded).
     """
 
     seed: int = 0
     simulation: Any = None
     replay: Any = None
-    decode_ahead: bool = False
+    decode_ahead: frozenset[str] = frozenset()
 
 
 @dataclass

@@ -168,7 +168,7 @@ class ReplayDriver(_Driver):
             raise DriverUnavailableError(f"{self.name}: the log has no sensor {self.source!r}")
         if self._frames is None:  # a restart resumes where the log was, it does not rewind
             self._frames = log_.frames(self.source, log_.shared_demux(), lazy=True)
-        self._prefetch = _Prefetch(self._frames, self.name, decode=self.context.decode_ahead)
+        self._prefetch = _Prefetch(self._frames, self.name, decode=self.modality in self.context.decode_ahead)
 
     async def stop(self) -> None:
         self._stopped.set()

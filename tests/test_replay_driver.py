@@ -155,3 +155,32 @@ def test_depth_is_resized_by_nearest_neighbour_only() -> None:
     for size in ((2, 1), (8, 4)):
         out = counterfactual.resize(Frame("depth", 0.0, 0, depth), size).data
         assert set(np.unique(out)) <= {1000, 4000}  # no depth in between was made up
+
+
+async def test_read_ahead_decodes_only_the_modalities_named(tmp_path: Path) -> None:
+    """Without a detector the features read RGB and thermal pixels, never depth's: the read-ahead
+    threads decode the RGB JPEGs and leave the depth PNGs encoded."""
+    from respecd.control.features import IMAGE_FEATURE_MODALITIES
+
+    clock = ManualClock()
+    recorder = Recorder(RecordingConfig(path=str(tmp_path / "rd.mcap")), {"name": "rig", "sensors": []}, clock)
+    recorder.start()
+    for i in range(5):
+        clock.set(i / 10)
+        recorder.on_frame("cam", Frame("rgb", i / 10, i, np.full((36, 64, 3), 40 * i, np.uint8)))
+        recorder.on_frame("tof", Frame("depth", i / 10, i, np.full((48, 64), 1000 + i, np.uint16)))
+    await recorder.close()
+    log_ = open_log(recorder.paths[0])
+    context = DriverContext(replay=log_, decode_ahead=IMAGE_FEATURE_MODALITIES)
+    drivers = {m: ReplayDriver(ReplayConfig(name=n, modality=m), ManualClock(), context)  # type: ignore[arg-type]
+               for n, m in (("cam", "rgb"), ("tof", "depth"))}
+    for driver in drivers.values():
+        await driver.start()
+    try:
+        read = {m: [d._prefetch.get() for _ in range(5)] for m, d in drivers.items()}  # type: ignore[union-attr]
+    finally:
+        for driver in drivers.values():
+            await driver.stop()
+    assert all(getattr(f, "decoded", True) for f in read["rgb"])
+    assert not any(getattr(f, "decoded", True) for f in read["depth"])
+    assert read["depth"][4].data[0, 0] == 1004  # still decodes when something reads it

@@ -18,6 +18,7 @@ from respecd.control.state import Observation
 from respecd.messages import Frame, Health, Modality, Percept
 
 REFERENCE_FPS = 30.0  # illumination is normalised to a 1/30 s exposure at gain 1
+IMAGE_FEATURE_MODALITIES = frozenset({"rgb", "thermal"})  # the imagers whose pixels ``_images`` reads
 _HEALTH_LEVEL = {Health.GOOD: 0, Health.FAIR: 1, Health.POOR: 2}
 
 

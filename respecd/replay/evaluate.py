@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 
 import structlog
 
+from respecd.control.features import IMAGE_FEATURE_MODALITIES
 from respecd.control.persist import StoredTable, table_meta, table_path
 from respecd.drivers.replay import ReplayConfig
 from respecd.errors import InputError
@@ -178,8 +179,10 @@ class _Replay:
         if lockstep and self.profile.perception.enabled:
             model = LatencyModel.from_percepts(self.logged_percepts)
             self.latency_source = f"{model.source}: {model.s_per_pixel * 1e9:.1f} ns/px"
-        # without a detector the controller's features read every frame: decode them ahead, off the loop
-        decode_ahead = not self.profile.perception.enabled and self.profile.controller.enabled
+        # without a detector the controller's features read every RGB and thermal frame: decode
+        # those ahead, off the loop (depth's pixels are then read by nothing)
+        features_read = not self.profile.perception.enabled and self.profile.controller.enabled
+        decode_ahead = IMAGE_FEATURE_MODALITIES if features_read else frozenset()
         context = DriverContext(seed=self.seed, replay=self.session, decode_ahead=decode_ahead)
         session = Session(self.profile, clock, context, exports=self.exports,
                           tables=self.tables, observers=[self.collector], latency_model=model)
