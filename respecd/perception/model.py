@@ -13,6 +13,7 @@ our own.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 
@@ -289,7 +290,7 @@ class FusionNet(nn.Module):
         holds only these anchors (``fuse_window``'s indices)."""
         box_logits, cls_logits = raw
         height, width = input_hw
-        points, strides = anchor_grid(height, width, device=box_logits.device)
+        points, strides = cached_anchor_grid(height, width, box_logits.device)
         if anchors is not None:
             points, strides = points[anchors], strides[anchors]
         boxes = decode_boxes(box_logits, points, strides, self.spec.reg_max)
@@ -308,6 +309,14 @@ def anchor_grid(height: int, width: int, device: torch.device | None = None) -> 
         points.append((torch.stack([xs, ys], -1).reshape(-1, 2) + 0.5) * s)  # (h*w, 2) cell centres
         strides.append(torch.full((xs.numel(), 1), float(s), device=device))
     return torch.cat(points), torch.cat(strides)
+
+
+@functools.lru_cache(maxsize=16)
+def cached_anchor_grid(height: int, width: int, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    """``anchor_grid``, made once per input size (every frame decodes at the same few sizes; building it
+    costs as much as NMS). Made outside inference mode so autograd may read it; callers never write to it."""
+    with torch.inference_mode(False):
+        return anchor_grid(height, width, device)
 
 
 def anchor_cells(lo: float, hi: float, stride: int, count: int) -> tuple[int, int]:
