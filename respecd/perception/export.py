@@ -31,7 +31,7 @@ from respecd.perception.parts import Part
 
 log = structlog.get_logger(__name__)
 
-FORMAT = "respecd-onnx/1"  # bump when the parts or their names change: cached exports are then redone
+FORMAT = "respecd-onnx/2"  # bump when the parts or their names change: cached exports are then redone
 OPSET = 17
 EXAMPLE_HW = (384, 640)  # the example input's size; every graph takes any multiple of 32
 MANIFEST = "manifest.json"

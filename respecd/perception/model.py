@@ -222,6 +222,10 @@ class FusionNet(nn.Module):
 
         Returns DFL box logits (B, N, 4 * reg_max) and class logits (B, N, nc).
         """
+        if self.engine is not None:  # one graph: the runtime keeps its own layout between backbones and fusion
+            aux = x[:, 3:]
+            presence = aux.new_ones(aux.shape[:2]) if presence is None else presence.to(aux.dtype)
+            return self.engine("net", x[:, :3], aux, presence)  # type: ignore[return-value]
         return self.fuse(self.encode_rgb(x[:, :3]), self.encode_aux(x[:, 3:], presence))
 
     def fold_batchnorm(self) -> None:
@@ -265,13 +269,16 @@ class FusionNet(nn.Module):
         return self.neck(*(torch.cat([r, a], 1) for r, a in zip(rgb, aux, strict=True)))
 
     def export_parts(self, x: torch.Tensor, presence: torch.Tensor) -> list[Part]:
-        """The parts a runtime runs (``engine``), with example inputs from ``x`` (1, C, H, W): the backbone per
-        modality, neck + head, the neck alone and each level's head branches (attribution's windows)."""
+        """The parts a runtime runs (``engine``), with example inputs from ``x`` (1, C, H, W): the whole net (a
+        forward pass), the backbone per modality, neck + head, the neck alone and each level's head branches
+        (attribution's windows)."""
         with torch.no_grad():
             rgb, aux = self.rgb(x[:, :3]), self.encode_aux(x[:, 3:], presence)
             feats = self._neck(rgb, aux)
         features = (*names("rgb", 3), *names("aux", 3))
         parts = [
+            Part("net", Call(self, lambda n, r, a, p: n.fuse(n.rgb(r), n.encode_aux(a, p))),
+                 (x[:, :3], x[:, 3:], presence), ("rgb", "aux", "presence"), ("box", "cls")),
             Part("rgb", Call(self, lambda n, r: n.rgb(r)), (x[:, :3],), ("rgb",), names("rgb", 3)),
             Part("aux", Call(self, lambda n, a, p: n.encode_aux(a, p)), (x[:, 3:], presence), ("aux", "presence"),
                  names("aux", 3)),

@@ -68,6 +68,10 @@ class FusionNetSplit:
     def encode_aux(self, aux: torch.Tensor, presence: torch.Tensor) -> Any:
         return self.model.encode_aux(aux, presence)
 
+    def detect_all(self, x: torch.Tensor, presence: torch.Tensor) -> Scored:
+        """``forward`` in one call of the net: an exported runtime runs it as one graph (parts.py "net")."""
+        return self.model.decode(self.model(x, presence), (x.shape[2], x.shape[3]))
+
     def detect(self, rgb: Any, aux: Any, input_hw: tuple[int, int], near: torch.Tensor | None = None) -> Scored:
         if near is None:
             return self.model.decode(self.model.fuse(rgb, aux), input_hw)
@@ -109,7 +113,11 @@ class WholeNetSplit:
 
 
 def forward(split: SplitNet, x: torch.Tensor, presence: torch.Tensor) -> Scored:
-    """Every sensor as given, (1, 3 + A, H, W) and (1, A): all anchors' boxes and class probabilities."""
+    """Every sensor as given, (1, 3 + A, H, W) and (1, A): all anchors' boxes and class probabilities
+    (through the split's ``detect_all`` where it has one: the same numbers, one call)."""
+    whole = getattr(split, "detect_all", None)
+    if whole is not None:
+        return whole(x, presence)
     return split.detect(split.encode_rgb(x[:, :3]), split.encode_aux(x[:, 3:], presence), (x.shape[2], x.shape[3]))
 
 
