@@ -155,6 +155,20 @@ def test_rgbt_with_rgb_black_runs_its_thermal_alone_map_on_the_runtime(runtime: 
         assert_same(want["RGB black"], reference.infer(thermal_only, attribute=True), "rgbt, RGB on forced")
 
 
+@pytest.mark.parametrize("runtime", RUNTIMES)
+def test_a_forward_pass_is_one_graph_and_attribution_runs_the_parts(runtime: str, exports: Path) -> None:
+    """The runtime keeps its own layout (ONNX Runtime's NCHWc blocks) from input to head when a forward pass
+    is one graph; attribution, which re-runs fusion with sensors off, still runs the parts."""
+    exported = detector("builtin:sim-rover", runtime, exports)
+    engine, called = exported.model.engine, []
+    exported.model.engine = lambda name, *inputs: called.append(name) or engine(name, *inputs)
+    frames = bundles()[0][1]
+    assert exported.infer(frames, attribute=False).detections and called == ["net"]
+    called.clear()
+    exported.infer(frames, attribute=True)
+    assert {"rgb", "aux", "neck"} <= set(called) and "net" not in called
+
+
 def test_the_shipped_checkpoints_are_all_compared() -> None:
     assert {"builtin:sim-rover", "builtin:rgbt", "builtin:rgbt-hituav"} <= set(SHIPPED)
 
