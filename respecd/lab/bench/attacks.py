@@ -78,6 +78,18 @@ def refused(result: subprocess.CompletedProcess[str] | None, status: int = 2, sa
     return None
 
 
+def escape(work: Callable[[], Any], refusal: type[Exception], where: str = "") -> str | None:
+    """The escape, if ``work()`` raises anything but ``refusal`` (its clear error); None when it
+    succeeds or refuses. ``where`` prefixes the message (which input did it)."""
+    try:
+        work()
+    except refusal:
+        return None
+    except Exception as err:  # noqa: BLE001 - the outcome under test
+        return f"{where}{type(err).__name__}: {err}"[:200]
+    return None
+
+
 def at_once(work: Callable[[], Any], unblock: Path | None = None, limit_s: float = 10.0) -> tuple[Any, str | None]:
     """``work()`` in a thread: (its result or error, None), or (None, "blocked") after ``limit_s``
     (then a writer opens ``unblock``, a FIFO, so that the thread ends)."""

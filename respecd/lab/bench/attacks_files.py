@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import yaml
 
-from respecd.lab.bench.attacks import Context, Kind, at_once, refused
+from respecd.lab.bench.attacks import Context, Kind, at_once, escape, refused
 
 SPECIALS = ("fifo", "/dev/zero", "/dev/null", "dir", "socket")
 
@@ -267,13 +267,7 @@ def hostile_profiles(ctx: Context, i: int) -> str | None:
         lines.insert(k, lines[k])  # a duplicate key
     path = ctx.fresh("hostile") / "p.yaml"
     path.write_text("\n".join(lines) + "\n", encoding="utf-8", errors="surrogateescape")
-    try:
-        read_profile(str(path))
-    except ConfigError:
-        return None
-    except Exception as err:  # noqa: BLE001 - the outcome under test
-        return f"line {k + 1} = {junk!r}: {type(err).__name__}: {err}"[:200]
-    return None
+    return escape(lambda: read_profile(str(path)), ConfigError, where=f"line {k + 1} = {junk!r}: ")
 
 
 def record_special(ctx: Context, i: int) -> str | None:
