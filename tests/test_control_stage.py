@@ -10,6 +10,8 @@ import pytest
 
 from respecd.clock import ManualClock
 from respecd.config import load_profile
+from respecd.control.persist import read_table
+from respecd.control.shipped import shipped_table_path
 from respecd.control.stage import ControllerStage
 from respecd.drivers.base import DriverContext
 from respecd.drivers.sim import SimDriver
@@ -31,7 +33,8 @@ class BrokenRadar(SimDriver):
 class Rig:
     """Real SimDrivers + the stage; the test moves the clock and plays the synchronizer."""
 
-    def __init__(self, tmp_path: Path, policy: str, broken_radar: bool = False, save_every: int = 1000) -> None:
+    def __init__(self, tmp_path: Path, policy: str, broken_radar: bool = False, save_every: int = 1000,
+                 warm_start: bool = False) -> None:
         profile = load_profile("builtin:sim-rover")
         self.clock = ManualClock()
         context = DriverContext(
@@ -46,7 +49,8 @@ class Rig:
                     sensor.model_copy(update={"render_in_thread": "never"}), self.clock, context
                 )
         config = profile.controller.model_copy(
-            update={"policy": policy, "system_probe": False, "min_dwell_s": 0.0, "save_every": save_every}
+            update={"policy": policy, "system_probe": False, "min_dwell_s": 0.0, "save_every": save_every,
+                    "warm_start": warm_start}
         )
         self.stage = ControllerStage(config, profile, self.drivers, self.clock, tmp_path)
         self.decisions: list[Decision] = []
@@ -108,6 +112,30 @@ async def test_learn_run_decides_applies_and_persists(tmp_path: Path) -> None:
     await again.stage._prepare()
     assert again.stage.controller.table.updates == table.updates
     assert (again.stage.controller.table.q == table.q).all()
+
+
+async def test_learn_on_a_fresh_state_dir_starts_from_the_shipped_table(tmp_path: Path) -> None:
+    _, shipped_q, _ = read_table(shipped_table_path())
+    rig = Rig(tmp_path, "learn", warm_start=True)
+    await rig.stage._prepare()
+    table = rig.stage.controller.table
+    assert rig.stage.table_source is not None and rig.stage.table_source.startswith("shipped")
+    assert (table.q == shipped_q).all() and table.updates > 0
+    assert table.epsilon < rig.stage.config.learning.epsilon_start  # the trained table's, not a fresh start
+
+    cold = Rig(tmp_path / "cold", "learn", warm_start=False)
+    await cold.stage._prepare()
+    assert cold.stage.table_source == "new" and cold.stage.controller.table.updates == 0
+
+
+async def test_learn_keeps_its_own_table_over_the_shipped_one(tmp_path: Path) -> None:
+    rig = Rig(tmp_path, "learn", warm_start=False)
+    await rig.run(3.0)
+    learned = rig.stage.controller.table.q.copy()
+    again = Rig(tmp_path, "learn", warm_start=True)
+    await again.stage._prepare()
+    assert again.stage.table_source is not None and not again.stage.table_source.startswith("shipped")
+    assert (again.stage.controller.table.q == learned).all()
 
 
 async def test_scene_turning_dark_moves_the_heuristic_to_thermal(tmp_path: Path) -> None:

@@ -286,6 +286,11 @@ class ControllerConfig(StrictModel):
     save_every: int = Field(
         30, ge=1, le=100_000, description="Save the Q-table every N learning updates (and on stop)."
     )
+    warm_start: bool = Field(
+        True,
+        description="learn: with no table of its own in the state directory, start from the shipped table when it "
+        "was learned for this layout (its epsilon), not from an empty one at epsilon_start.",
+    )
     table_file: str = Field(
         "", description="Q-table file name in the state directory; empty: qtable-<profile name>.npz."
     )

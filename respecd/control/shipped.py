@@ -1,9 +1,10 @@
 """The Q-table that ships inside the package (``respecd/control/tables/default-qtable.npz``),
 trained by ``respecd train-policy`` on the simulated rover with the default profile.
 
-``load_shipped`` is the read-only fallback for ``--policy exploit`` when the state directory
-holds no table: unlike ``persist.load_into`` it never renames a file it cannot use (the
-shipped one may sit in a read-only site-packages), it only says so and returns False.
+``load_shipped`` is the read-only fallback when the state directory holds no table, for
+``--policy exploit`` and for ``learn`` with ``controller.warm_start`` (the default): unlike
+``persist.load_into`` it never renames a file it cannot use (the shipped one may sit in a read-only
+site-packages), it only says so and returns False.
 """
 
 from __future__ import annotations

@@ -222,7 +222,7 @@ class ControllerStage:
         elif tables.load is not None and await asyncio.to_thread(load_into, tables.load, table, layout,
                                                                   tables.set_aside):
             source = f"{tables.load.name} ({table.updates} updates)"
-        if source is None and self.config.policy == "exploit":  # nothing learned here yet: the shipped table
+        if source is None and self._starts_from_shipped():  # nothing learned here yet: the shipped table
             if await asyncio.to_thread(load_shipped, table, layout):
                 source = f"shipped ({table.updates} updates)"
         self._saved_updates = table.updates
@@ -235,6 +235,11 @@ class ControllerStage:
             log.warning("exploit_without_table", path=str(self.table_path))
             source = "no table"
         self.table_source = source or "new"  # learn from scratch
+
+    def _starts_from_shipped(self) -> bool:
+        """exploit always falls back to the shipped table; learn does when warm-started, so a fresh robot
+        runs what was learned for its layout instead of exploring at random (epsilon_start) for minutes."""
+        return self.config.policy == "exploit" or (self.config.policy == "learn" and self.config.warm_start)
 
     # internals ------------------------------------------------------------------------
     async def _consume(self, percepts: DropOldestQueue[Percept]) -> None:
