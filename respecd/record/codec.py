@@ -24,7 +24,7 @@ import numpy as np
 
 from respecd.messages import Frame, Modality
 from respecd.record import lazy as lazy_frames
-from respecd.record import legacy
+from respecd.record import legacy, png
 from respecd.record.topics import colormap_topic, meta_topic, raw_topic, sensor_topic
 
 RADAR_FIELDS = legacy.RADAR_FIELDS
@@ -34,18 +34,6 @@ _RAW_ENCODINGS = {  # Foxglove RawImage encodings; data is little-endian
     ("uint8", 1): "mono8",
     ("uint16", 1): "mono16",
     ("float32", 1): "32FC1",
-}
-
-
-# PNG at zlib level 1 with one fixed filter and strategy, chosen on simulated frames (docs/RECORDING.md
-# "Image encodings"): higher levels gain 2-3 % for 1.7-3.4x the time, libpng's adaptive filter choice
-# costs more than it gains; 8-bit colour predicts best from the average of left and up, 16-bit from
-# the left neighbour; run-length matches only (flat areas, invalid depth), as noise leaves nothing longer.
-PNG_PARAMS = {
-    1: [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_AVG,
-        cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE],
-    2: [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_FILTER, cv2.IMWRITE_PNG_FILTER_SUB,
-        cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_RLE],
 }
 
 
@@ -173,14 +161,13 @@ def _compress(data: np.ndarray, fmt: str, jpeg_quality: int) -> tuple[str, bytes
     """(format, bytes) of ``data`` as a PNG or JPEG; None where it stays raw: asked so, or pixels
     the format cannot hold exactly (float, JPEG of anything but 8-bit colour or grey)."""
     channels = data.shape[2] if data.ndim == 3 else 1
-    if fmt == "jpeg" and data.dtype == np.uint8 and channels in (1, 3):
-        ok, buf = cv2.imencode(".jpg", data, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
-    elif fmt == "png" and data.dtype in (np.uint8, np.uint16) and channels in (1, 3, 4):
-        ok, buf = cv2.imencode(".png", data, PNG_PARAMS[data.itemsize])
-    else:
+    if fmt == "png" and data.dtype in (np.uint8, np.uint16) and channels in (1, 3, 4):
+        return fmt, png.encode(data)
+    if fmt != "jpeg" or data.dtype != np.uint8 or channels not in (1, 3):
         return None
+    ok, buf = cv2.imencode(".jpg", data, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
     if not ok:
-        raise ValueError(f"{fmt} encoding of a {data.shape} {data.dtype} image failed")
+        raise ValueError(f"jpeg encoding of a {data.shape} {data.dtype} image failed")
     return fmt, buf.tobytes()
 
 

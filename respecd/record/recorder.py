@@ -26,7 +26,7 @@ import structlog
 from respecd.clock import Clock
 from respecd.messages import Bundle, Decision, Frame, Percept, SensorConfig
 from respecd.priority import lower_thread_priority
-from respecd.record import codec, events
+from respecd.record import codec, events, png
 from respecd.record.codec import Message
 from respecd.record.config import RecordingConfig
 from respecd.record.scene import PERIOD_S, Scene
@@ -176,7 +176,7 @@ class Recorder:
         self._thread = threading.Thread(target=self._run, name="respecd-recorder")
         self._thread.start()
         log.info("record.start", path=str(path) if path else None, live=self._live is not None,
-                 channels=sorted(self.channels))
+                 channels=sorted(self.channels), png_encoder=png.ENCODER)
         return path
 
     # -- taps, called on the event loop: O(1), never block ------------------------------
