@@ -2,7 +2,8 @@
 
 The folder holds one graph per part of the net (each backbone, fusion + neck + head, and
 for the CSP net the neck and each level's head branches, which the attribution runs on
-crops) with batch norms folded, and ``manifest.json`` (checkpoint hash, spec, each graph's
+crops) with batch norms folded, for the CSP net each also as ``NAME.nchwc.onnx`` (what ONNX
+Runtime's CPU provider loads: perception/blocked.py), and ``manifest.json`` (checkpoint hash, spec, each graph's
 inputs and outputs). The daemon exports by itself into its state directory on the first
 start with ``perception.runtime: onnxruntime|openvino``; this command is for running the
 graphs elsewhere (e.g. ``trtexec`` on a Jetson) or looking at them (Netron). With ONNX
@@ -32,16 +33,18 @@ def main(args: argparse.Namespace) -> int:
     manifest = export.export(model, args.out, export.checkpoint_hash(path), args.weights)
     check = _check(model, args.out, manifest)
     for name, graph in manifest["graphs"].items():
-        size = (args.out / graph["file"]).stat().st_size
-        print(f"{args.out / graph['file']}: {name} ({', '.join(graph['inputs'])} -> {', '.join(graph['outputs'])}), "
-              f"{size / 1e6:.1f} MB{check.get(name, '')}")
+        for key in ("file", export.NCHWC):
+            if key in graph:
+                size = (args.out / graph[key]).stat().st_size
+                print(f"{args.out / graph[key]}: {name} ({', '.join(graph['inputs'])} -> "
+                      f"{', '.join(graph['outputs'])}), {size / 1e6:.1f} MB{check.get(graph[key], '')}")
     print(f"{args.out / export.MANIFEST}: {manifest['checkpoint']} sha256 {manifest['sha256'][:16]}..., "
           f"opset {manifest['opset']}")
     return 0
 
 
 def _check(model, folder: Path, manifest: dict) -> dict[str, str]:
-    """Per graph, ``, max |onnxruntime - torch| = ...`` on the export's example input (nothing without ORT)."""
+    """Per graph file, ``, max |onnxruntime - torch| = ...`` on an example input (nothing without ORT)."""
     try:
         import onnxruntime
     except ImportError:
@@ -54,12 +57,13 @@ def _check(model, folder: Path, manifest: dict) -> dict[str, str]:
     channels = len(model.spec.channels)
     x = torch.rand(1, channels, *export.EXAMPLE_HW, generator=torch.Generator().manual_seed(1))
     for part in model.export_parts(x, torch.ones(1, channels - 3)):
-        session = onnxruntime.InferenceSession(str(folder / manifest["graphs"][part.name]["file"]),
-                                               providers=["CPUExecutionProvider"])
         feeds = {n: t.contiguous().numpy() for n, t in zip(part.inputs, part.example, strict=True)}
         with torch.no_grad():
             want = part.module(*part.example)
-        got = session.run(None, feeds)
-        worst = max(float((torch.from_numpy(g) - w).abs().max()) for g, w in zip(got, want, strict=True))
-        found[part.name] = f", max |onnxruntime - torch| = {worst:.1e}"
+        graph = manifest["graphs"][part.name]
+        for file in (graph[key] for key in ("file", export.NCHWC) if key in graph):
+            session = onnxruntime.InferenceSession(str(folder / file), providers=["CPUExecutionProvider"])
+            got = session.run(None, feeds)
+            worst = max(float((torch.from_numpy(g) - w).abs().max()) for g, w in zip(got, want, strict=True))
+            found[file] = f", max |onnxruntime - torch| = {worst:.1e}"
     return found

@@ -1,12 +1,14 @@
 """A checkpoint's net as ONNX graphs, one per part (``parts.py``), for ONNX Runtime and OpenVINO.
 
 ``export`` folds the batch norms and writes each part the net lists (``export_parts``) as
-``NAME.onnx`` with dynamic height and width, plus ``manifest.json``: the checkpoint's hash,
-the spec, each graph's inputs and outputs. ``cached`` keeps one such folder per checkpoint
-content under a cache folder (the daemon's state directory), so that ``runtime: onnxruntime``
-on a ``builtin:`` checkpoint needs no step by hand: the first start exports (seconds), later
-starts reuse it. Torch's TorchScript-based exporter is used (opset 17): it needs no package
-beyond torch, and the graphs are plain ONNX any runtime reads.
+``NAME.onnx`` with dynamic height and width, for the CSP net also as ``NAME.nchwc.onnx``
+(``blocked.py``: the same outputs in fewer copies on ONNX Runtime's CPU provider), plus
+``manifest.json``: the checkpoint's hash, the spec, each graph's files, inputs and outputs.
+``cached`` keeps one such folder per checkpoint content under a cache folder (the daemon's
+state directory), so that ``runtime: onnxruntime`` on a ``builtin:`` checkpoint needs no step
+by hand: the first start exports (seconds), later starts reuse it. Torch's TorchScript-based
+exporter is used (opset 17): it needs no package beyond torch, and the graphs are plain ONNX
+any runtime reads.
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ import structlog
 import torch
 
 from respecd.errors import ConfigError
-from respecd.perception import fold
+from respecd.perception import blocked, fold
 from respecd.perception.checkpoint import Net
 from respecd.perception.config import ModelSpec
 from respecd.perception.parts import Part
@@ -35,9 +37,11 @@ FORMAT = "respecd-onnx/2"  # bump when the parts or their names change: cached e
 OPSET = 17
 EXAMPLE_HW = (384, 640)  # the example input's size; every graph takes any multiple of 32
 MANIFEST = "manifest.json"
+NCHWC = "nchwc"  # a graph's variant for MLAS's blocked layout (ONNX Runtime's CPU provider), where the net has one
 
 
-NET_CODE = ("model.py", "darknet.py", "darknet_fusion.py", "parts.py", "fold.py", "export.py")  # what a graph is
+NET_CODE = ("model.py", "darknet.py", "darknet_fusion.py", "parts.py", "fold.py", "blocked.py",  # what a graph is
+            "export.py")
 
 
 def code_hash() -> str:
@@ -67,10 +71,15 @@ def export(model: Net, out: Path, sha256: str = "", source: str = "") -> dict[st
     x = torch.rand(1, channels, *EXAMPLE_HW, generator=torch.Generator().manual_seed(0))
     presence = torch.ones(1, channels - 3)
     out.mkdir(parents=True, exist_ok=True)
-    graphs = {}
+    graphs: dict[str, dict[str, Any]] = {}
     for part in model.export_parts(x, presence):
         _export_part(part, out / f"{part.name}.onnx")
         graphs[part.name] = {"file": f"{part.name}.onnx", "inputs": list(part.inputs), "outputs": list(part.outputs)}
+    nchwc = blocked.for_export(model)
+    if nchwc is not model:  # the same parts for ONNX Runtime's CPU provider (blocked.py)
+        for part in nchwc.export_parts(x, presence):  # type: ignore[operator]
+            _export_part(part, out / f"{part.name}.{NCHWC}.onnx")
+            graphs[part.name][NCHWC] = f"{part.name}.{NCHWC}.onnx"
     manifest = {"format": FORMAT, "checkpoint": source, "sha256": sha256, "opset": OPSET, "torch": torch.__version__,
                 "spec": model.spec.model_dump(mode="json"), "graphs": graphs}
     (out / MANIFEST).write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
@@ -107,7 +116,8 @@ def read_manifest(folder: Path, spec: ModelSpec | None = None) -> dict[str, Any]
     found = manifest.get("format") if isinstance(manifest, dict) else None
     if found != FORMAT or not isinstance(manifest.get("graphs"), dict):
         raise ConfigError(f"{path}: export format {found!r}, expected {FORMAT!r} (re-run `respecd export`)")
-    missing = [g["file"] for g in manifest["graphs"].values() if not (folder / g["file"]).is_file()]
+    files = [g[key] for g in manifest["graphs"].values() for key in ("file", NCHWC) if key in g]
+    missing = [f for f in files if not (folder / f).is_file()]
     if missing:
         raise ConfigError(f"{folder}: the export lacks {', '.join(missing)}")
     if spec is not None and ModelSpec.model_validate(manifest["spec"]) != spec:

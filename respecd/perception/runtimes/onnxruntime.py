@@ -5,7 +5,9 @@
 provider with CUDA and CPU behind it for what TensorRT does not take. TensorRT compiles an
 engine per input shape (kept in the export folder's ``tensorrt/``, so only the first start
 pays); the head's crops, whose shape changes with every attribution, run on CUDA instead.
-``precision: f16`` is TensorRT's FP16 mode; the CPU and CUDA providers run f32.
+``precision: f16`` is TensorRT's FP16 mode; the CPU and CUDA providers run f32. The CPU provider
+loads a part's ``nchwc`` graph where the export has one (``blocked.py``); the GPU providers and
+OpenVINO, whose layouts the zero-padded channels would only slow, load the plain one.
 """
 
 from __future__ import annotations
@@ -17,6 +19,7 @@ import torch
 
 from respecd.errors import ConfigError
 from respecd.perception.config import PerceptionConfig
+from respecd.perception.export import NCHWC
 
 NAME = "onnxruntime"
 CPU = "CPUExecutionProvider"
@@ -46,6 +49,11 @@ def providers(device: str, folder: Path, precision: str = "f32", crops: bool = F
     trt = {"device_id": str(index), "trt_fp16_enable": str(precision == "f16"), "trt_engine_cache_enable": "True",
            "trt_engine_cache_path": str(folder / "tensorrt")}
     return [(TENSORRT, trt), cuda, CPU]
+
+
+def graph_file(graph: dict[str, Any], chosen: list[Provider]) -> str:
+    """The file of an exported part these providers run: its ``nchwc`` variant on the CPU provider alone."""
+    return graph.get(NCHWC, graph["file"]) if chosen == [CPU] else graph["file"]
 
 
 def problem(config: PerceptionConfig) -> str | None:
@@ -85,7 +93,7 @@ class OnnxRuntimeEngine:
         self.sessions: dict[str, tuple[Any, list[str]]] = {}
         for name, graph in manifest["graphs"].items():
             chosen = providers(config.device, folder, config.precision, crops=name.startswith(CROPS))
-            session = ort.InferenceSession(str(folder / graph["file"]), options, providers=chosen)
+            session = ort.InferenceSession(str(folder / graph_file(graph, chosen)), options, providers=chosen)
             self.sessions[name] = (session, list(graph["inputs"]))
 
     def __call__(self, name: str, *inputs: torch.Tensor) -> tuple[torch.Tensor, ...]:
