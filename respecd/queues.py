@@ -44,6 +44,10 @@ class DropOldestQueue(Generic[T]):
             tap(item)
         return not dropped
 
+    def pending(self) -> tuple[T, ...]:
+        """The items queued now, in the order ``get`` takes them."""
+        return tuple(self._items)
+
     def get_nowait(self) -> T:
         if not self._items:
             raise asyncio.QueueEmpty

@@ -119,20 +119,39 @@ def test_speed_max_with_the_detector_is_deterministic(session_log: Path, tmp_pat
     assert a["decisions"] == b["decisions"] and len(a["decisions"]) >= 2
 
 
-@pytest.mark.slow
-def test_a_replay_decodes_only_the_rgb_frames_the_detector_runs_on(
-    session_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    """A frame superseded before the detector takes a bundle is never decoded."""
+def _with_detector(session_log: Path, tmp_path: Path) -> Path:
+    """The session's profile with the shipped detector on (skips without the checkpoint)."""
     from respecd.errors import ConfigError
     from respecd.perception.checkpoint import resolve
-    from respecd.record import legacy
-    from respecd.replay.run import replay
 
     try:
         resolve("builtin:sim-rover")
     except ConfigError:
         pytest.skip("no built-in detector checkpoint (run `make weights`)")
+    profile = yaml.safe_load((session_log.parent / "profile.yaml").read_text())
+    profile["perception"] = {"enabled": True}
+    config = tmp_path / "with-detector.yaml"
+    config.write_text(yaml.safe_dump(profile))
+    return config
+
+
+def _join_perception_threads() -> None:
+    """An inference still running when a replay ends finishes on its own (seconds, under load)."""
+    for thread in threading.enumerate():
+        if thread.name.startswith("perception"):
+            thread.join(timeout=60)
+            assert not thread.is_alive()
+
+
+@pytest.mark.slow
+def test_a_replay_decodes_only_the_rgb_frames_the_detector_runs_on(
+    session_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A frame superseded before the detector takes a bundle is never decoded, ahead or not."""
+    from respecd.record import legacy
+    from respecd.replay.run import replay
+
+    config = _with_detector(session_log, tmp_path)
     decoded: list[int] = []
     real = legacy.decode_compressed
     def counted(raw: bytes, fmt: str) -> Any:
@@ -141,20 +160,103 @@ def test_a_replay_decodes_only_the_rgb_frames_the_detector_runs_on(
         return real(raw, fmt)
 
     monkeypatch.setattr(legacy, "decode_compressed", counted)
-    profile = yaml.safe_load((session_log.parent / "profile.yaml").read_text())
-    profile["perception"] = {"enabled": True}
-    config = tmp_path / "with-detector.yaml"
-    config.write_text(yaml.safe_dump(profile))
     entry = replay(session_log, config=config, policy="static", duration=2.0)["policies"]["static"]
     served, percepts = entry["compute"]["frames"]["rgb"], entry["compute"]["percepts"]
     assert served > percepts >= 3  # the detector (paced by its modelled latency) skips frames
     # the detector's frames, plus the first frame (the replay reads the logged size from it) and
-    # the frame of an inference still running when the replay ends (its percept is never counted)
+    # the frame of an inference still running (or decoded ahead for one) when the replay ends,
+    # whose percept is never counted
     assert len(decoded) <= percepts + 2 < served + 2
-    for thread in threading.enumerate():  # that inference finishes on its own (seconds, under load)
-        if thread.name.startswith("perception"):
-            thread.join(timeout=60)
-            assert not thread.is_alive()
+    _join_perception_threads()
+
+
+@pytest.mark.slow
+def test_a_replay_decodes_the_next_bundle_while_the_detector_runs(
+    session_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The frames decoded ahead are those of the detector's next bundle; it finds them decoded."""
+    from respecd.perception.detector import FusionDetector
+    from respecd.record.lazy import LazyFrame
+    from respecd.replay.run import replay
+
+    config = _with_detector(session_log, tmp_path)
+    ahead: list[tuple[str, dict[str, tuple[int, float]]]] = []  # (thread, the frames decoded)
+    ran: list[tuple[dict[str, tuple[int, float]], bool]] = []  # (the frames run on, all decoded already)
+    real_decode, real_infer = FusionDetector.decode, FusionDetector.infer
+
+    def which(frames: dict[str, Any]) -> dict[str, tuple[int, float]]:
+        return {m: (f.seq, f.t) for m, f in frames.items() if m in ("rgb", "thermal", "radar")}
+
+    def decode(self: FusionDetector, frames: dict[str, Any]) -> None:
+        ahead.append((threading.current_thread().name, which(frames)))
+        real_decode(self, frames)
+
+    def infer(self: FusionDetector, frames: dict[str, Any], attribute: bool) -> Any:
+        read = self.aligner.frames_read(frames)
+        ran.append((which(frames), all(f.decoded for f in read if isinstance(f, LazyFrame))))
+        return real_infer(self, frames, attribute)
+
+    monkeypatch.setattr(FusionDetector, "decode", decode)
+    monkeypatch.setattr(FusionDetector, "infer", infer)
+    replay(session_log, config=config, policy="static", duration=2.0)
+    _join_perception_threads()
+    run_on = [frames for frames, _ in ran]
+    assert len(run_on) >= 4 and all(thread.startswith("perception-decode") for thread, _ in ahead)
+    decoded_ahead = [frames for _, frames in ahead]
+    # each set decoded ahead is a later inference's (but the last: its bundle's inference may be cut off
+    # by the replay's end), never the first inference's, each once
+    assert sum(frames not in run_on[1:] for frames in decoded_ahead) <= 1
+    assert len({str(frames) for frames in decoded_ahead}) == len(decoded_ahead) >= (len(run_on) - 1) // 2
+    ready = sum(decoded for _, decoded in ran[1:])
+    assert ready >= (len(ran) - 1) // 2  # the detector found its pixels decoded
+
+
+def _with_cut_images(log: Path, out: Path, topic: str) -> Path:
+    """``log`` with each JPEG on ``topic`` but the first cut after its header (its size still
+    reads, its pixels do not decode), every other record as it was."""
+    from mcap.writer import Writer
+
+    with open(log, "rb") as src, open(out, "wb") as dst:
+        reader, writer = make_reader(src), Writer(dst)
+        writer.start()
+        schemas: dict[int, int] = {}
+        channels: dict[int, int] = {}
+        seen = 0
+        for schema, channel, message in reader.iter_messages():
+            if schema is not None and schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(channel.topic, channel.message_encoding,
+                                                               schemas.get(channel.schema_id, 0), channel.metadata)
+            data = message.data
+            seen += channel.topic == topic
+            if channel.topic == topic and seen > 1:
+                image = DecoderFactory().decoder_for(channel.message_encoding, schema)(data)
+                image.data = image.data[: image.data.find(b"\xff\xda")] + b"\xff\xd9"  # up to the scan, then EOI
+                data = image.SerializeToString()
+            writer.add_message(channels[channel.id], message.log_time, data, message.publish_time)
+        for record in reader.iter_metadata():
+            writer.add_metadata(record.name, record.metadata)
+        writer.finish()
+    return out
+
+
+@pytest.mark.slow
+def test_an_undecodable_image_is_the_detectors_error_as_before_decoding_ahead(
+    session_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A JPEG whose pixels do not decode fails quietly where it is decoded ahead, and as before
+    where the detector reads it (the perception stage's logged error, then its restart); the
+    replay goes on to the log's end."""
+    config = _with_detector(session_log, tmp_path)
+    bad = _with_cut_images(session_log, tmp_path / "cut-images.mcap", "/sensors/rgb")
+    assert _replay(bad, tmp_path / "r.json", "--config", str(config), "--policy", "static") == 0
+    _join_perception_threads()
+    events = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
+    crashes = [e for e in events if e["event"] == "stage_crashed"]
+    assert crashes and all(e["stage"] == "perception" and "undecodable jpeg image" in e["exception"] for e in crashes)
+    entry = json.loads((tmp_path / "r.json").read_text())["policies"]["static"]
+    assert entry["replayed_s"] > 3.5 and entry["compute"]["percepts"] >= 1
 
 
 @pytest.mark.slow

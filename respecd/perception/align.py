@@ -71,16 +71,18 @@ class Aligner:
         k_rgb = self._rgb_matrix(w, h)
         presence = np.zeros(len(self.aux), dtype=np.float32)
         for i, name in enumerate(self.aux):
-            frame = frames.get(name)
-            # an upscaled replay frame (record.lazy) holds no more than its source, and it is
-            # resampled into the RGB view anyway: resample the source, once
-            frame = getattr(frame, "upscale_of", None) or frame
+            frame = pixel_source(frames.get(name))
             if frame is None or frame.data.size == 0 and name != "radar":
                 continue
             plane = self._plane(name, frame, k_rgb, w, h)
             out[3 + i, :h, :w] = plane
             presence[i] = 1.0
         return AlignedInput(out, presence, (w, h))
+
+    def frames_read(self, frames: dict[str, Frame]) -> list[Frame]:
+        """The frames whose pixels ``align`` reads (a replay decodes them ahead of it)."""
+        read = [frames.get("rgb"), *(pixel_source(frames.get(name)) for name in self.aux)]
+        return [frame for frame in read if frame is not None]
 
     def _rgb_matrix(self, w: int, h: int) -> np.ndarray:
         cal = self.calibration.get("rgb")
@@ -110,6 +112,13 @@ class Aligner:
         else:
             z = reproject_depth(z, camera_matrix(cal.intrinsics, z.shape[1], z.shape[0]), cal, k_rgb, w, h)
         return np.where(z > 0, 1.0 - np.clip(z / self.config.depth_max_m, 0, 1), 0.0).astype(np.float32)
+
+
+def pixel_source(frame: Frame | None) -> Frame | None:
+    """The frame whose pixels an aux modality's plane is made from. An upscaled replay frame
+    (record.lazy) holds no more than its source, and it is resampled into the RGB view anyway:
+    the source, resampled once."""
+    return getattr(frame, "upscale_of", None) or frame
 
 
 def normalize_thermal(frame: Frame, config: PerceptionConfig) -> np.ndarray:

@@ -115,6 +115,13 @@ class FusionDetector:
     def prepare(self, frames: dict[str, Frame]) -> AlignedInput:
         return self.aligner.align(frames)
 
+    def decode(self, frames: dict[str, Frame]) -> None:
+        """Decode, in the calling thread, the pixels ``infer`` will read: a replay's frames are
+        decoded when first read (``record.lazy``), and a replay decodes the next bundle's while
+        this detector runs on the current one. Raises what decoding raises."""
+        for frame in self.aligner.frames_read(frames):
+            frame.data  # noqa: B018 - a LazyFrame decodes on first read
+
     def infer(self, frames: dict[str, Frame], attribute: bool) -> Percept:
         """Detections (+ contributions when ``attribute``) for one set of synchronized frames."""
         start = time.perf_counter()

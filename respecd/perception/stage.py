@@ -16,6 +16,11 @@ on (sensors, synchronizer, controller run beside the detector, on the other core
 the detector is not done when its modelled latency is up does the clock wait for it. Which
 bundle is taken and when a percept arrives depend on the log alone. ``on_inference``
 observers see each percept as the detector produced it (measured latency).
+
+While the clock waits for the detector, the bundle it will take next is already queued: a
+worker thread decodes that bundle's images then (a replay's frames are decoded when first
+read, ``record.lazy``), so the detector, the replay's critical path, does not — where a core
+is left beside the detector's threads. Only frames the detector will run on are decoded.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ import asyncio
 import contextlib
 import dataclasses
 import json
+import os
 import threading
 from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
@@ -128,6 +134,7 @@ class PerceptionStage:
         self.skipped = 0  # bundles whose detector inputs were all seen already
         self._pending: asyncio.Future[None] | None = None  # done once the bundle taken has its percept out
         self._finishing = False
+        self._decoder: ThreadPoolExecutor | None = None  # decodes the next bundle's images (lockstep)
 
     def finish(self) -> asyncio.Future[None] | None:
         """Take no new bundle; the future is done when the one being worked on has its percept
@@ -167,6 +174,9 @@ class PerceptionStage:
         # latency model's) the log's clock waits for it, so it is the critical path: normal priority
         yields = lower_thread_priority if self.latency_model is None else None
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="perception", initializer=yields)
+        if self.latency_model is not None and _core_beside(self.config.torch_threads):
+            self._decoder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="perception-decode",
+                                               initializer=lower_thread_priority)
         try:
             while True:
                 if self.latency_model is not None:
@@ -186,7 +196,7 @@ class PerceptionStage:
                     modelled = None
                 else:
                     modelled = self.latency_model.predict(bundle, attribute)
-                    percept = await self._infer_beside_the_clock(frames, attribute, taken + modelled)
+                    percept = await self._infer_beside_the_clock(frames, attribute, taken + modelled, bundles)
                 percept = dataclasses.replace(percept, t=bundle.t, bundle=bundle)
                 self.last = self._with_last_attribution(percept)
                 self.processed += 1
@@ -202,23 +212,40 @@ class PerceptionStage:
                 self._pending.cancel()
             await self._shutdown()
 
-    async def _infer_beside_the_clock(self, frames: dict[Any, Any], attribute: bool, due: float) -> Percept:
+    async def _infer_beside_the_clock(self, frames: dict[Any, Any], attribute: bool, due: float,
+                                      bundles: DropOldestQueue[Bundle]) -> Percept:
         """The detector in its thread while the log's clock runs on to ``due`` (when the
         robot's detector would have delivered); then its result, the clock standing still
-        until it is there. The job is handed to the executor directly, so a ``LockstepLoop``
-        does not count it (which would hold the clock); waiting for its result is counted."""
+        until it is there (meanwhile the next bundle's images are decoded). The job is handed
+        to the executor directly, so a ``LockstepLoop`` does not count it (which would hold
+        the clock); waiting for its result is counted."""
         assert self._executor is not None
         job = self._executor.submit(self._detector.infer, frames, attribute)
         try:
             await self.clock.sleep_until(due)
             if job.done():
                 return job.result()
+            self._decode_next(bundles)
             return await asyncio.get_running_loop().run_in_executor(None, job.result)
         finally:
             job.cancel()  # a stop while it runs: it finishes in its thread, nobody waits for it
 
+    def _decode_next(self, bundles: DropOldestQueue[Bundle]) -> None:
+        """Decode, in the decoder's thread, the images of the bundle ``run`` takes next. Called
+        with the clock at the running job's due time: the queue holds what it will hold when
+        the job is done. A frame that cannot be decoded fails again where the detector reads it."""
+        decode = getattr(self._detector, "decode", None)
+        if self._decoder is None or decode is None or self._finishing:
+            return
+        bundle = next((b for b in bundles.pending() if self._inputs_of(b) != self._last_inputs), None)
+        if bundle is not None:
+            self._decoder.submit(_quietly, decode, dict(bundle.frames))
+
     async def _shutdown(self) -> None:
         """Drop a pending infer, let a running one finish in its thread without blocking the loop."""
+        decoder, self._decoder = self._decoder, None
+        if decoder is not None:
+            decoder.shutdown(wait=False, cancel_futures=True)
         executor, self._executor = self._executor, None
         if executor is None:
             return
@@ -268,11 +295,15 @@ class PerceptionStage:
         the detector again on the same RGB/thermal/radar frames would cost a full inference
         for an identical answer, so lowering those sensors' rates really lowers compute.
         """
-        seen: dict[str, tuple[int, float]] = {m: (f.seq, f.t) for m, f in bundle.frames.items() if m in self._inputs}
+        seen = self._inputs_of(bundle)
         if seen == self._last_inputs:
             return False
         self._last_inputs = seen
         return True
+
+    def _inputs_of(self, bundle: Bundle) -> dict[str, tuple[int, float]]:
+        """Which frame (seq, time) each detector input of ``bundle`` is."""
+        return {m: (f.seq, f.t) for m, f in bundle.frames.items() if m in self._inputs}
 
     def _attribution_due(self, t: float) -> bool:
         cadence = not self._on_request_only and (
@@ -283,3 +314,15 @@ class PerceptionStage:
             self._attribution_requested = False
             self._last_attribution_t = t
         return due
+
+
+def _core_beside(threads: int) -> bool:
+    """A core is left beside the detector's ``threads`` (decoding ahead would not take one of its)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+    return threads < cores
+
+
+def _quietly(decode: Callable[[dict[Any, Any]], None], frames: dict[Any, Any]) -> None:
+    """``decode(frames)``, errors left for the detector to meet (as it would without decoding ahead)."""
+    with contextlib.suppress(Exception):
+        decode(frames)
