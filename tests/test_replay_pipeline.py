@@ -119,7 +119,7 @@ def test_speed_max_with_the_detector_is_deterministic(session_log: Path, tmp_pat
     assert a["decisions"] == b["decisions"] and len(a["decisions"]) >= 2
 
 
-def _with_detector(session_log: Path, tmp_path: Path) -> Path:
+def _with_detector(session_log: Path, tmp_path: Path, **perception: Any) -> Path:
     """The session's profile with the shipped detector on (skips without the checkpoint)."""
     from respecd.errors import ConfigError
     from respecd.perception.checkpoint import resolve
@@ -129,7 +129,7 @@ def _with_detector(session_log: Path, tmp_path: Path) -> Path:
     except ConfigError:
         pytest.skip("no built-in detector checkpoint (run `make weights`)")
     profile = yaml.safe_load((session_log.parent / "profile.yaml").read_text())
-    profile["perception"] = {"enabled": True}
+    profile["perception"] = {"enabled": True, **perception}
     config = tmp_path / "with-detector.yaml"
     config.write_text(yaml.safe_dump(profile))
     return config
@@ -209,6 +209,29 @@ def test_a_replay_decodes_the_next_bundle_while_the_detector_runs(
     assert len({str(frames) for frames in decoded_ahead}) == len(decoded_ahead) >= (len(run_on) - 1) // 2
     ready = sum(decoded for _, decoded in ran[1:])
     assert ready >= (len(ran) - 1) // 2  # the detector found its pixels decoded
+
+
+@pytest.mark.slow
+def test_nothing_is_decoded_ahead_when_the_detector_takes_every_core(
+    session_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Decoding ahead would take a core from the detector's threads: the detector decodes itself."""
+    import os
+
+    from respecd.perception.detector import FusionDetector
+    from respecd.replay.run import replay
+
+    config = _with_detector(session_log, tmp_path, torch_threads=len(os.sched_getaffinity(0)))
+    ahead: list[str] = []
+    real_decode = FusionDetector.decode
+    def decode(self: FusionDetector, frames: dict[str, Any]) -> None:
+        ahead.append(threading.current_thread().name)
+        real_decode(self, frames)
+
+    monkeypatch.setattr(FusionDetector, "decode", decode)
+    entry = replay(session_log, config=config, policy="static", duration=1.0)["policies"]["static"]
+    _join_perception_threads()
+    assert entry["compute"]["percepts"] >= 2 and ahead == []
 
 
 def _with_cut_images(log: Path, out: Path, topic: str) -> Path:
