@@ -23,6 +23,11 @@ class InputError(RespecdError):
     """A file given on the command line is missing or malformed (exit 2)."""
 
 
+class UndecodableImageError(ValueError):
+    """A recorded image whose bytes do not decode: one damaged frame, not a damaged log (a
+    replay reads on without it). A ValueError, as the decoders raised before it had a name."""
+
+
 class DriverError(RespecdError):
     """A sensor driver failed."""
 

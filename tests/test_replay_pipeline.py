@@ -265,21 +265,26 @@ def _with_cut_images(log: Path, out: Path, topic: str) -> Path:
 
 
 @pytest.mark.slow
-def test_an_undecodable_image_is_the_detectors_error_as_before_decoding_ahead(
+def test_undecodable_images_are_left_out_and_the_detector_runs_on(
     session_log: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    """A JPEG whose pixels do not decode fails quietly where it is decoded ahead, and as before
-    where the detector reads it (the perception stage's logged error, then its restart); the
-    replay goes on to the log's end."""
+    """JPEGs whose pixels do not decode fail quietly where they are decoded ahead; where the
+    detector reads them they are left out, as frames that never came, and said once: the
+    detector runs on the other sensors to the log's end (no stage crash and restart, which at
+    --speed max lost the rest of the log's percepts)."""
     config = _with_detector(session_log, tmp_path)
+    assert _replay(session_log, tmp_path / "clean.json", "--config", str(config), "--policy", "static") == 0
     bad = _with_cut_images(session_log, tmp_path / "cut-images.mcap", "/sensors/rgb")
     assert _replay(bad, tmp_path / "r.json", "--config", str(config), "--policy", "static") == 0
     _join_perception_threads()
     events = [json.loads(line) for line in capsys.readouterr().out.splitlines() if line.startswith("{")]
-    crashes = [e for e in events if e["event"] == "stage_crashed"]
-    assert crashes and all(e["stage"] == "perception" and "undecodable jpeg image" in e["exception"] for e in crashes)
+    assert not [e for e in events if e["event"] == "stage_crashed"]
+    said = [e for e in events if e["event"] == "frame_undecodable"]
+    assert said and said[0]["sensor"] == "rgb" and "rgb frame" in said[0]["error"]
+    assert "undecodable jpeg image" in said[0]["error"]
+    clean = json.loads((tmp_path / "clean.json").read_text())["policies"]["static"]["compute"]["percepts"]
     entry = json.loads((tmp_path / "r.json").read_text())["policies"]["static"]
-    assert entry["replayed_s"] > 3.5 and entry["compute"]["percepts"] >= 1
+    assert entry["replayed_s"] > 3.5 and entry["compute"]["percepts"] >= 0.8 * clean
 
 
 @pytest.mark.slow

@@ -15,6 +15,7 @@ import numpy as np
 
 from respecd.control.imagestats import BlockSampler, MotionMeter, spread
 from respecd.control.state import Observation
+from respecd.errors import UndecodableImageError
 from respecd.messages import Frame, Health, Modality, Percept
 
 REFERENCE_FPS = 30.0  # illumination is normalised to a 1/30 s exposure at gain 1
@@ -69,27 +70,34 @@ class FeatureExtractor:
         the RGB noise hides a walking person that the thermal camera still sees)."""
         luminance, scores = None, []
         rgb = frames.get("rgb")
-        if rgb is not None:
-            blocks = self._blocks(rgb)
+        blocks = self._blocks(rgb)
+        if rgb is not None and blocks is not None:
             luminance = scene_light(float(blocks.mean()), rgb.meta)
             scores.append(self._motion["rgb"].update(rgb.seq, rgb.shape, blocks))
         thermal = frames.get("thermal")
-        if thermal is not None:
-            blocks = self._blocks(thermal)
+        blocks = self._blocks(thermal)
+        if thermal is not None and blocks is not None:
             motion = self._motion["thermal"]
             if not motion.seen(thermal.seq, thermal.shape):
                 scores.append(motion.update(thermal.seq, thermal.shape, blocks, spread(blocks)))
         known = [s for s in scores if s is not None]
         return luminance, (max(known) if known else None)
 
-    def _blocks(self, frame: Frame) -> np.ndarray:
+    def _blocks(self, frame: Frame | None) -> np.ndarray | None:
         """Block means of the frame; a frame already sampled (a slow camera sits in several
-        bundles) is not read again."""
+        bundles) is not read again. None without a frame, or for a logged image whose bytes do
+        not decode (as if it never came: the perception stage says so)."""
+        if frame is None:
+            return None
         key = (frame.seq, frame.shape)
         last = self._last_blocks.get(frame.modality)
         if last is not None and last[0] == key:
             return last[1]
-        blocks = self._sampler.blocks(frame.data)
+        try:
+            pixels = frame.data
+        except UndecodableImageError:
+            return None
+        blocks = self._sampler.blocks(pixels)
         self._last_blocks[frame.modality] = (key, blocks)
         return blocks
 

@@ -39,6 +39,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import structlog
 
 from respecd.clock import Clock
+from respecd.errors import UndecodableImageError
 from respecd.messages import Bundle, Percept
 from respecd.perception.config import PerceptionConfig
 from respecd.priority import lower_thread_priority
@@ -132,6 +133,7 @@ class PerceptionStage:
         self._inputs = frozenset({"rgb", *config.model.aux_modalities})
         self._last_inputs: dict[str, tuple[int, float]] = {}
         self.skipped = 0  # bundles whose detector inputs were all seen already
+        self.undecodable: dict[str, int] = {}  # per sensor: logged images left out, their bytes damaged
         self._pending: asyncio.Future[None] | None = None  # done once the bundle taken has its percept out
         self._finishing = False
         self._decoder: ThreadPoolExecutor | None = None  # decodes the next bundle's images (lockstep)
@@ -192,7 +194,7 @@ class PerceptionStage:
                 frames = dict(bundle.frames)
                 self._pending = loop.create_future()
                 if self.latency_model is None:
-                    percept = await loop.run_in_executor(self._executor, self._detector.infer, frames, attribute)
+                    percept = await loop.run_in_executor(self._executor, self._infer_intact, frames, attribute)
                     modelled = None
                 else:
                     modelled = self.latency_model.predict(bundle, attribute)
@@ -220,7 +222,7 @@ class PerceptionStage:
         to the executor directly, so a ``LockstepLoop`` does not count it (which would hold
         the clock); waiting for its result is counted."""
         assert self._executor is not None
-        job = self._executor.submit(self._detector.infer, frames, attribute)
+        job = self._executor.submit(self._infer_intact, frames, attribute)
         try:
             await self.clock.sleep_until(due)
             if job.done():
@@ -229,6 +231,26 @@ class PerceptionStage:
             return await asyncio.get_running_loop().run_in_executor(None, job.result)
         finally:
             job.cancel()  # a stop while it runs: it finishes in its thread, nobody waits for it
+
+    def _infer_intact(self, frames: dict[Any, Any], attribute: bool) -> Percept:
+        """The detector on ``frames``; a logged image that does not decode is left out, as a frame
+        that never came (the detector runs on the other sensors), and said: the first time per
+        sensor, then every 100th. Before, it took the whole perception stage down for its restart."""
+        try:
+            return self._detector.infer(frames, attribute)
+        except UndecodableImageError:
+            intact: dict[Any, Any] = {}
+            for name, frame in frames.items():
+                try:
+                    frame.data  # noqa: B018  # decodes it (cached) or raises again
+                except UndecodableImageError as err:
+                    count = self.undecodable[name] = self.undecodable.get(name, 0) + 1
+                    if count == 1 or count % 100 == 0:
+                        log.warning("frame_undecodable", sensor=name, error=str(err), count=count,
+                                    action="inferred without it")
+                    continue
+                intact[name] = frame
+            return self._detector.infer(intact, attribute)
 
     def _decode_next(self, bundles: DropOldestQueue[Bundle]) -> None:
         """Decode, in the decoder's thread, the images of the bundle ``run`` takes next. Called

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from respecd.errors import UndecodableImageError
 from respecd.messages import Frame, Modality
 
 _DATA = Frame.__dict__["data"]  # the slot that holds a Frame's pixels
@@ -62,7 +63,10 @@ class LazyFrame(Frame):
                 return _DATA.__get__(self, Frame)
             except AttributeError:
                 assert self._decode is not None
-                data = self._decode()
+                try:
+                    data = self._decode()
+                except UndecodableImageError as err:  # say which frame: the decoder only saw bytes
+                    raise UndecodableImageError(f"{self.modality} frame {self.seq} (t {self.t:.3f} s): {err}") from None
                 _DATA.__set__(self, data)
                 object.__setattr__(self, "_decode", None)  # the encoded bytes can go
                 return data

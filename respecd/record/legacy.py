@@ -14,6 +14,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from respecd.errors import UndecodableImageError
 from respecd.messages import Frame, Modality
 
 RADAR_FIELDS = ("x", "y", "z", "v", "snr")  # Frame.data columns for radar, float32 each
@@ -73,7 +74,7 @@ def imu_array(msg: dict[str, Any]) -> np.ndarray:
 def decode_compressed(raw: bytes, fmt: str) -> np.ndarray:
     data = cv2.imdecode(np.frombuffer(raw, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
     if data is None:
-        raise ValueError(f"undecodable {fmt} image")
+        raise UndecodableImageError(f"undecodable {fmt} image")
     return data
 
 

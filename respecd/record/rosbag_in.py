@@ -31,7 +31,7 @@ import numpy as np
 import structlog
 
 from respecd import filekind, pathkind
-from respecd.errors import InputError
+from respecd.errors import InputError, UndecodableImageError
 from respecd.messages import Frame, Modality
 from respecd.record.bag_layout import bag_root, check_layout, metadata_mismatches, storage_sources
 from respecd.record.reader import ChannelInfo, Demux
@@ -298,7 +298,7 @@ def _compressed(msg: Any, modality: Modality) -> np.ndarray:
         raw = raw[12:]  # image_transport's compressedDepth config header
     data = cv2.imdecode(raw, cv2.IMREAD_UNCHANGED)
     if data is None:
-        raise ValueError(f"undecodable {msg.format!r} image")
+        raise UndecodableImageError(f"undecodable {msg.format!r} image")
     return _to_modality(data, "bgr8" if data.ndim == 3 else "mono", modality)
 
 
