@@ -171,67 +171,78 @@ def test_a_replay_decodes_only_the_rgb_frames_the_detector_runs_on(
 
 
 @pytest.mark.slow
-def test_a_replay_decodes_the_next_bundle_while_the_detector_runs(
+def test_a_replay_prepares_the_next_bundle_while_the_detector_runs(
     session_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """The frames decoded ahead are those of the detector's next bundle; it finds them decoded."""
+    """The inputs prepared ahead are those of the detector's next bundles; the detector runs on
+    them as they were prepared, and they are bit for bit what it would have prepared itself."""
     from respecd.perception.detector import FusionDetector
-    from respecd.record.lazy import LazyFrame
     from respecd.replay.run import replay
 
     config = _with_detector(session_log, tmp_path)
-    ahead: list[tuple[str, dict[str, tuple[int, float]]]] = []  # (thread, the frames decoded)
-    ran: list[tuple[dict[str, tuple[int, float]], bool]] = []  # (the frames run on, all decoded already)
-    real_decode, real_infer = FusionDetector.decode, FusionDetector.infer
+    ahead: dict[int, dict[str, tuple[int, float]]] = {}  # id of each input prepared ahead -> its frames
+    ran: list[tuple[dict[str, tuple[int, float]], Any]] = []  # (the frames run on, the input given or None)
+    mismatched: list[dict[str, tuple[int, float]]] = []
+    real_prepare, real_infer = FusionDetector.prepare, FusionDetector.infer
 
     def which(frames: dict[str, Any]) -> dict[str, tuple[int, float]]:
         return {m: (f.seq, f.t) for m, f in frames.items() if m in ("rgb", "thermal", "radar")}
 
-    def decode(self: FusionDetector, frames: dict[str, Any]) -> None:
-        ahead.append((threading.current_thread().name, which(frames)))
-        real_decode(self, frames)
+    def prepare(self: FusionDetector, frames: dict[str, Any]) -> Any:
+        aligned = real_prepare(self, frames)
+        if threading.current_thread().name.startswith("perception-prepare"):
+            ahead[id(aligned)] = which(frames)
+        return aligned
 
-    def infer(self: FusionDetector, frames: dict[str, Any], attribute: bool) -> Any:
-        read = self.aligner.frames_read(frames)
-        ran.append((which(frames), all(f.decoded for f in read if isinstance(f, LazyFrame))))
-        return real_infer(self, frames, attribute)
+    def infer(self: FusionDetector, frames: dict[str, Any], attribute: bool, aligned: Any = None) -> Any:
+        ran.append((which(frames), aligned))
+        if aligned is not None:
+            here = real_prepare(self, frames)
+            same = (here.size == aligned.size and here.tensor.dtype == aligned.tensor.dtype
+                    and here.tensor.shape == aligned.tensor.shape and here.tensor.tobytes() == aligned.tensor.tobytes()
+                    and here.presence.tobytes() == aligned.presence.tobytes())
+            if not same:
+                mismatched.append(which(frames))
+        return real_infer(self, frames, attribute, aligned)
 
-    monkeypatch.setattr(FusionDetector, "decode", decode)
+    monkeypatch.setattr(FusionDetector, "prepare", prepare)
     monkeypatch.setattr(FusionDetector, "infer", infer)
     replay(session_log, config=config, policy="static", duration=2.0)
     _join_perception_threads()
     run_on = [frames for frames, _ in ran]
-    assert len(run_on) >= 4 and all(thread.startswith("perception-decode") for thread, _ in ahead)
-    decoded_ahead = [frames for _, frames in ahead]
-    # each set decoded ahead is a later inference's (but the last: its bundle's inference may be cut off
-    # by the replay's end), never the first inference's, each once
-    assert sum(frames not in run_on[1:] for frames in decoded_ahead) <= 1
-    assert len({str(frames) for frames in decoded_ahead}) == len(decoded_ahead) >= (len(run_on) - 1) // 2
-    ready = sum(decoded for _, decoded in ran[1:])
-    assert ready >= (len(ran) - 1) // 2  # the detector found its pixels decoded
+    assert len(run_on) >= 4 and ran[0][1] is None  # nothing is ahead of the first bundle
+    # each input prepared ahead is a later inference's (but the last: its bundle's inference may be cut
+    # off by the replay's end), never the first inference's, each once
+    assert sum(frames not in run_on[1:] for frames in ahead.values()) <= 1
+    assert len({str(frames) for frames in ahead.values()}) == len(ahead) >= (len(run_on) - 1) // 2
+    used = [(frames, aligned) for frames, aligned in ran if aligned is not None]
+    assert len(used) >= (len(ran) - 1) // 2  # the detector found its input prepared
+    assert all(ahead.get(id(aligned)) == frames for frames, aligned in used)  # for those very frames
+    assert mismatched == []
 
 
 @pytest.mark.slow
-def test_nothing_is_decoded_ahead_when_the_detector_takes_every_core(
+def test_nothing_is_prepared_ahead_when_the_detector_takes_every_core(
     session_log: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Decoding ahead would take a core from the detector's threads: the detector decodes itself."""
+    """Preparing ahead would take a core from the detector's threads: the detector prepares itself."""
     import os
 
     from respecd.perception.detector import FusionDetector
     from respecd.replay.run import replay
 
     config = _with_detector(session_log, tmp_path, torch_threads=len(os.sched_getaffinity(0)))
-    ahead: list[str] = []
-    real_decode = FusionDetector.decode
-    def decode(self: FusionDetector, frames: dict[str, Any]) -> None:
-        ahead.append(threading.current_thread().name)
-        real_decode(self, frames)
+    threads: list[str] = []
+    real_prepare = FusionDetector.prepare
+    def prepare(self: FusionDetector, frames: dict[str, Any]) -> Any:
+        threads.append(threading.current_thread().name)
+        return real_prepare(self, frames)
 
-    monkeypatch.setattr(FusionDetector, "decode", decode)
+    monkeypatch.setattr(FusionDetector, "prepare", prepare)
     entry = replay(session_log, config=config, policy="static", duration=1.0)["policies"]["static"]
     _join_perception_threads()
-    assert entry["compute"]["percepts"] >= 2 and ahead == []
+    assert entry["compute"]["percepts"] >= 2 and len(threads) >= 2
+    assert all(name.startswith("perception_") for name in threads)  # the detector's own thread
 
 
 def _with_cut_images(log: Path, out: Path, topic: str) -> Path:

@@ -79,11 +79,6 @@ class Aligner:
             presence[i] = 1.0
         return AlignedInput(out, presence, (w, h))
 
-    def frames_read(self, frames: dict[str, Frame]) -> list[Frame]:
-        """The frames whose pixels ``align`` reads (a replay decodes them ahead of it)."""
-        read = [frames.get("rgb"), *(pixel_source(frames.get(name)) for name in self.aux)]
-        return [frame for frame in read if frame is not None]
-
     def _rgb_matrix(self, w: int, h: int) -> np.ndarray:
         cal = self.calibration.get("rgb")
         if cal is not None and cal.intrinsics is not None:

@@ -113,19 +113,18 @@ class FusionDetector:
         self.scores = self.scene_scores()
 
     def prepare(self, frames: dict[str, Frame]) -> AlignedInput:
+        """The network's input for ``frames`` (decoded, aligned, normalised): all ``infer`` does before
+        the network. Depends on the frames alone (the calibration is fixed); raises what decoding raises."""
         return self.aligner.align(frames)
 
-    def decode(self, frames: dict[str, Frame]) -> None:
-        """Decode, in the calling thread, the pixels ``infer`` will read: a replay's frames are
-        decoded when first read (``record.lazy``), and a replay decodes the next bundle's while
-        this detector runs on the current one. Raises what decoding raises."""
-        for frame in self.aligner.frames_read(frames):
-            frame.data  # noqa: B018 - a LazyFrame decodes on first read
+    def infer(self, frames: dict[str, Frame], attribute: bool, aligned: AlignedInput | None = None) -> Percept:
+        """Detections (+ contributions when ``attribute``) for one set of synchronized frames.
 
-    def infer(self, frames: dict[str, Frame], attribute: bool) -> Percept:
-        """Detections (+ contributions when ``attribute``) for one set of synchronized frames."""
+        ``aligned``: ``prepare(frames)`` done already (a replay prepares the next bundle while
+        this detector runs on the current one); None: prepared here."""
         start = time.perf_counter()
-        aligned = self.prepare(frames)
+        if aligned is None:
+            aligned = self.prepare(frames)
         t = max((f.t for f in frames.values()), default=0.0)
         result = self.run(aligned, attribute, t)
         return Percept(

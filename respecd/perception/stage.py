@@ -18,9 +18,11 @@ bundle is taken and when a percept arrives depend on the log alone. ``on_inferen
 observers see each percept as the detector produced it (measured latency).
 
 While the clock waits for the detector, the bundle it will take next is already queued: a
-worker thread decodes that bundle's images then (a replay's frames are decoded when first
-read, ``record.lazy``), so the detector, the replay's critical path, does not — where a core
-is left beside the detector's threads. Only frames the detector will run on are decoded.
+worker thread prepares that bundle's input then (decodes its images, a replay's frames being
+decoded when first read, ``record.lazy``; aligns and normalises them: ``FusionDetector.prepare``),
+so the detector, the replay's critical path, only runs the network — where a core is left beside
+the detector's threads. Only frames the detector will run on are prepared, and a prepared input
+is used only for the very frames it was made from (else the detector prepares its own).
 """
 
 from __future__ import annotations
@@ -32,7 +34,7 @@ import json
 import os
 import threading
 from collections.abc import Callable, Iterator, Mapping
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -136,7 +138,8 @@ class PerceptionStage:
         self.undecodable: dict[str, int] = {}  # per sensor: logged images left out, their bytes damaged
         self._pending: asyncio.Future[None] | None = None  # done once the bundle taken has its percept out
         self._finishing = False
-        self._decoder: ThreadPoolExecutor | None = None  # decodes the next bundle's images (lockstep)
+        self._preparer: ThreadPoolExecutor | None = None  # prepares the next bundle's input (lockstep)
+        self._ahead: _Ahead | None = None  # the input being prepared for the bundle taken next
 
     def finish(self) -> asyncio.Future[None] | None:
         """Take no new bundle; the future is done when the one being worked on has its percept
@@ -177,7 +180,7 @@ class PerceptionStage:
         yields = lower_thread_priority if self.latency_model is None else None
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="perception", initializer=yields)
         if self.latency_model is not None and _core_beside(self.config.torch_threads):
-            self._decoder = ThreadPoolExecutor(max_workers=1, thread_name_prefix="perception-decode",
+            self._preparer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="perception-prepare",
                                                initializer=lower_thread_priority)
         try:
             while True:
@@ -218,16 +221,16 @@ class PerceptionStage:
                                       bundles: DropOldestQueue[Bundle]) -> Percept:
         """The detector in its thread while the log's clock runs on to ``due`` (when the
         robot's detector would have delivered); then its result, the clock standing still
-        until it is there (meanwhile the next bundle's images are decoded). The job is handed
+        until it is there (meanwhile the next bundle's input is prepared). The job is handed
         to the executor directly, so a ``LockstepLoop`` does not count it (which would hold
         the clock); waiting for its result is counted."""
         assert self._executor is not None
-        job = self._executor.submit(self._infer_intact, frames, attribute)
+        job = self._executor.submit(self._infer, frames, attribute, self._prepared_for(frames))
         try:
             await self.clock.sleep_until(due)
             if job.done():
                 return job.result()
-            self._decode_next(bundles)
+            self._prepare_next(bundles)
             return await asyncio.get_running_loop().run_in_executor(None, job.result)
         finally:
             job.cancel()  # a stop while it runs: it finishes in its thread, nobody waits for it
@@ -252,22 +255,48 @@ class PerceptionStage:
                 intact[name] = frame
             return self._detector.infer(intact, attribute)
 
-    def _decode_next(self, bundles: DropOldestQueue[Bundle]) -> None:
-        """Decode, in the decoder's thread, the images of the bundle ``run`` takes next. Called
+    def _prepare_next(self, bundles: DropOldestQueue[Bundle]) -> None:
+        """Prepare, in the preparer's thread, the input of the bundle ``run`` takes next. Called
         with the clock at the running job's due time: the queue holds what it will hold when
         the job is done. A frame that cannot be decoded fails again where the detector reads it."""
-        decode = getattr(self._detector, "decode", None)
-        if self._decoder is None or decode is None or self._finishing:
+        prepare = getattr(self._detector, "prepare", None)
+        if self._preparer is None or prepare is None or self._finishing:
             return
         bundle = next((b for b in bundles.pending() if self._inputs_of(b) != self._last_inputs), None)
         if bundle is not None:
-            self._decoder.submit(_quietly, decode, dict(bundle.frames))
+            frames = dict(bundle.frames)
+            self._ahead = _Ahead(self._detector_frames(frames), self._preparer.submit(_quietly, prepare, frames))
+
+    def _prepared_for(self, frames: dict[Any, Any]) -> Future[Any] | None:
+        """The input prepared ahead for exactly these frames (the same frame objects for every
+        detector input: same pixels, same resolution, the same detector), else None."""
+        ahead, self._ahead = self._ahead, None
+        if ahead is None:
+            return None
+        taken = self._detector_frames(frames)
+        if taken.keys() == ahead.frames.keys() and all(taken[m] is frame for m, frame in ahead.frames.items()):
+            return ahead.input
+        ahead.input.cancel()
+        return None
+
+    def _infer(self, frames: dict[Any, Any], attribute: bool, prepared: Future[Any] | None) -> Percept:
+        """The detector on ``frames`` (its thread), with the input prepared ahead when it is there:
+        waited for if the preparer is on it, prepared here if it has not started or failed."""
+        if prepared is None or prepared.cancel():
+            return self._infer_intact(frames, attribute)
+        aligned = prepared.result()
+        if aligned is None:
+            return self._infer_intact(frames, attribute)
+        return self._detector.infer(frames, attribute, aligned)
+
+    def _detector_frames(self, frames: dict[Any, Any]) -> dict[Any, Any]:
+        return {m: f for m, f in frames.items() if m in self._inputs}
 
     async def _shutdown(self) -> None:
         """Drop a pending infer, let a running one finish in its thread without blocking the loop."""
-        decoder, self._decoder = self._decoder, None
-        if decoder is not None:
-            decoder.shutdown(wait=False, cancel_futures=True)
+        preparer, self._preparer = self._preparer, None
+        if preparer is not None:
+            preparer.shutdown(wait=False, cancel_futures=True)
         executor, self._executor = self._executor, None
         if executor is None:
             return
@@ -339,12 +368,21 @@ class PerceptionStage:
 
 
 def _core_beside(threads: int) -> bool:
-    """A core is left beside the detector's ``threads`` (decoding ahead would not take one of its)."""
+    """A core is left beside the detector's ``threads`` (preparing ahead would not take one of its)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
     return threads < cores
 
 
-def _quietly(decode: Callable[[dict[Any, Any]], None], frames: dict[Any, Any]) -> None:
-    """``decode(frames)``, errors left for the detector to meet (as it would without decoding ahead)."""
+@dataclasses.dataclass(frozen=True)
+class _Ahead:
+    """An input being prepared ahead: for which detector frames, and the preparer's job."""
+
+    frames: dict[Any, Any]
+    input: Future[Any]  # the AlignedInput, None if preparing failed
+
+
+def _quietly(prepare: Callable[[dict[Any, Any]], Any], frames: dict[Any, Any]) -> Any:
+    """``prepare(frames)``, None on an error left for the detector to meet (as it would without preparing ahead)."""
     with contextlib.suppress(Exception):
-        decode(frames)
+        return prepare(frames)
+    return None
