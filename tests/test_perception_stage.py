@@ -229,19 +229,19 @@ async def test_a_shared_detector_waits_for_the_last_sessions_inference(monkeypat
 def test_an_input_prepared_ahead_is_used_only_for_the_very_frames_it_was_made_from() -> None:
     """The same frame numbers are not enough (a frame re-made at another resolution keeps them):
     only the frame objects prepared ahead get that input, which is what the detector would make."""
-    from concurrent.futures import ThreadPoolExecutor
+    from respecd.perception.ahead import InputPreparer
 
     config = PerceptionConfig(model=TINY, score_threshold=0.0)
     detector = FusionDetector(FusionNet(TINY), config)
     stage = PerceptionStage(config, calibration=None, clock=ManualClock(), detector=detector)
-    stage._preparer = ThreadPoolExecutor(max_workers=1)
+    stage._preparer = preparer = InputPreparer(detector.prepare, stage._inputs)
     queued: DropOldestQueue[Bundle] = DropOldestQueue(4)
     bundle = _bundle(0.1, 1)
     queued.put(bundle)
     try:
         stage._prepare_next(queued)
-        prepared = stage._prepared_for(dict(bundle.frames))
-        assert prepared is not None and stage._prepared_for(dict(bundle.frames)) is None  # taken once
+        prepared = preparer.take(dict(bundle.frames))
+        assert prepared is not None and preparer.take(dict(bundle.frames)) is None  # taken once
         here, ahead = detector.prepare(dict(bundle.frames)), prepared.result()
         assert ahead.size == here.size and ahead.tensor.tobytes() == here.tensor.tobytes()
         assert ahead.presence.tobytes() == here.presence.tobytes()
@@ -249,6 +249,6 @@ def test_an_input_prepared_ahead_is_used_only_for_the_very_frames_it_was_made_fr
         resized = Frame("rgb", rgb.t, rgb.seq, np.zeros((48, 80, 3), np.uint8))
         for taken in ({**bundle.frames, "rgb": resized}, {"rgb": rgb}, dict(_bundle(0.2, 2).frames)):
             stage._prepare_next(queued)
-            assert stage._prepared_for(taken) is None
+            assert preparer.take(taken) is None
     finally:
-        stage._preparer.shutdown()
+        preparer.shutdown()

@@ -17,12 +17,8 @@ the detector is not done when its modelled latency is up does the clock wait for
 bundle is taken and when a percept arrives depend on the log alone. ``on_inference``
 observers see each percept as the detector produced it (measured latency).
 
-While the clock waits for the detector, the bundle it will take next is already queued: a
-worker thread prepares that bundle's input then (decodes its images, a replay's frames being
-decoded when first read, ``record.lazy``; aligns and normalises them: ``FusionDetector.prepare``),
-so the detector, the replay's critical path, only runs the network — where a core is left beside
-the detector's threads. Only frames the detector will run on are prepared, and a prepared input
-is used only for the very frames it was made from (else the detector prepares its own).
+While the clock waits for the detector, the bundle it will take next is already queued: its
+input is prepared then, beside the detector (``perception.ahead``).
 """
 
 from __future__ import annotations
@@ -31,7 +27,6 @@ import asyncio
 import contextlib
 import dataclasses
 import json
-import os
 import threading
 from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -43,6 +38,7 @@ import structlog
 from respecd.clock import Clock
 from respecd.errors import UndecodableImageError
 from respecd.messages import Bundle, Percept
+from respecd.perception.ahead import InputPreparer, core_beside
 from respecd.perception.config import PerceptionConfig
 from respecd.priority import lower_thread_priority
 from respecd.queues import DropOldestQueue
@@ -138,8 +134,7 @@ class PerceptionStage:
         self.undecodable: dict[str, int] = {}  # per sensor: logged images left out, their bytes damaged
         self._pending: asyncio.Future[None] | None = None  # done once the bundle taken has its percept out
         self._finishing = False
-        self._preparer: ThreadPoolExecutor | None = None  # prepares the next bundle's input (lockstep)
-        self._ahead: _Ahead | None = None  # the input being prepared for the bundle taken next
+        self._preparer: InputPreparer | None = None  # prepares the next bundle's input (lockstep)
 
     def finish(self) -> asyncio.Future[None] | None:
         """Take no new bundle; the future is done when the one being worked on has its percept
@@ -179,9 +174,9 @@ class PerceptionStage:
         # latency model's) the log's clock waits for it, so it is the critical path: normal priority
         yields = lower_thread_priority if self.latency_model is None else None
         self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="perception", initializer=yields)
-        if self.latency_model is not None and _core_beside(self.config.torch_threads):
-            self._preparer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="perception-prepare",
-                                               initializer=lower_thread_priority)
+        prepare = getattr(self._detector, "prepare", None)
+        if self.latency_model is not None and prepare is not None and core_beside(self.config.torch_threads):
+            self._preparer = InputPreparer(prepare, self._inputs)
         try:
             while True:
                 if self.latency_model is not None:
@@ -225,7 +220,8 @@ class PerceptionStage:
         to the executor directly, so a ``LockstepLoop`` does not count it (which would hold
         the clock); waiting for its result is counted."""
         assert self._executor is not None
-        job = self._executor.submit(self._infer, frames, attribute, self._prepared_for(frames))
+        prepared = self._preparer.take(frames) if self._preparer is not None else None
+        job = self._executor.submit(self._infer, frames, attribute, prepared)
         try:
             await self.clock.sleep_until(due)
             if job.done():
@@ -259,25 +255,11 @@ class PerceptionStage:
         """Prepare, in the preparer's thread, the input of the bundle ``run`` takes next. Called
         with the clock at the running job's due time: the queue holds what it will hold when
         the job is done. A frame that cannot be decoded fails again where the detector reads it."""
-        prepare = getattr(self._detector, "prepare", None)
-        if self._preparer is None or prepare is None or self._finishing:
+        if self._preparer is None or self._finishing:
             return
         bundle = next((b for b in bundles.pending() if self._inputs_of(b) != self._last_inputs), None)
         if bundle is not None:
-            frames = dict(bundle.frames)
-            self._ahead = _Ahead(self._detector_frames(frames), self._preparer.submit(_quietly, prepare, frames))
-
-    def _prepared_for(self, frames: dict[Any, Any]) -> Future[Any] | None:
-        """The input prepared ahead for exactly these frames (the same frame objects for every
-        detector input: same pixels, same resolution, the same detector), else None."""
-        ahead, self._ahead = self._ahead, None
-        if ahead is None:
-            return None
-        taken = self._detector_frames(frames)
-        if taken.keys() == ahead.frames.keys() and all(taken[m] is frame for m, frame in ahead.frames.items()):
-            return ahead.input
-        ahead.input.cancel()
-        return None
+            self._preparer.start(dict(bundle.frames))
 
     def _infer(self, frames: dict[Any, Any], attribute: bool, prepared: Future[Any] | None) -> Percept:
         """The detector on ``frames`` (its thread), with the input prepared ahead when it is there:
@@ -289,14 +271,11 @@ class PerceptionStage:
             return self._infer_intact(frames, attribute)
         return self._detector.infer(frames, attribute, aligned)
 
-    def _detector_frames(self, frames: dict[Any, Any]) -> dict[Any, Any]:
-        return {m: f for m, f in frames.items() if m in self._inputs}
-
     async def _shutdown(self) -> None:
         """Drop a pending infer, let a running one finish in its thread without blocking the loop."""
         preparer, self._preparer = self._preparer, None
         if preparer is not None:
-            preparer.shutdown(wait=False, cancel_futures=True)
+            preparer.shutdown()
         executor, self._executor = self._executor, None
         if executor is None:
             return
@@ -366,23 +345,3 @@ class PerceptionStage:
             self._last_attribution_t = t
         return due
 
-
-def _core_beside(threads: int) -> bool:
-    """A core is left beside the detector's ``threads`` (preparing ahead would not take one of its)."""
-    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-    return threads < cores
-
-
-@dataclasses.dataclass(frozen=True)
-class _Ahead:
-    """An input being prepared ahead: for which detector frames, and the preparer's job."""
-
-    frames: dict[Any, Any]
-    input: Future[Any]  # the AlignedInput, None if preparing failed
-
-
-def _quietly(prepare: Callable[[dict[Any, Any]], Any], frames: dict[Any, Any]) -> Any:
-    """``prepare(frames)``, None on an error left for the detector to meet (as it would without preparing ahead)."""
-    with contextlib.suppress(Exception):
-        return prepare(frames)
-    return None
