@@ -120,14 +120,10 @@ def _point(job: tuple[Any, ...]) -> dict[str, Any]:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from respecd.argtypes import positive_float, positive_int, seed
+    from respecd.argtypes import positive_int
+    from respecd.lab.experiment.setup import add_validation_arguments
 
-    parser.add_argument("--profile", default="builtin:sim-rover")
-    parser.add_argument("--seed", type=seed, default=500, help="first validation world seed (default 500)")
-    parser.add_argument("--worlds", type=positive_int, default=3, help="world sets (default 3)")
-    parser.add_argument("--duration", type=positive_float, default=20.0, help="seconds per scenario (default 20)")
-    parser.add_argument("--latency", default="orin-nano", help="latency table (default orin-nano)")
-    parser.add_argument("--cache-dir", type=Path)
+    add_validation_arguments(parser)
     parser.add_argument("--random-detector", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--json", type=Path, help="write every point's figures and the choice here")
     parser.add_argument("--jobs", type=positive_int, default=1, help="grid points run at once (default 1)")

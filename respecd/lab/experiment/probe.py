@@ -15,7 +15,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-from respecd.argtypes import positive_float, positive_int, seed, unit_interval
+from respecd.argtypes import unit_interval
 from respecd.lab.detector.metrics import ImageResult, average_precision
 from respecd.messages import conf_agg
 
@@ -76,12 +76,9 @@ def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, la
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--profile", default="builtin:sim-rover")
-    parser.add_argument("--seed", type=seed, default=500, help="first world seed (default 500: validation)")
-    parser.add_argument("--worlds", type=positive_int, default=3, help="sets of worlds, at least 1 (default 3)")
-    parser.add_argument("--duration", type=positive_float, default=20.0, help="seconds a world (default 20)")
-    parser.add_argument("--latency", default="orin-nano", help="latency table: orin-nano (default), cpu or a file")
-    parser.add_argument("--cache-dir", type=Path)
+    from respecd.lab.experiment.setup import add_validation_arguments
+
+    add_validation_arguments(parser)
     parser.add_argument("--json", type=Path, help="write the table here too")
     parser.add_argument("--score-threshold", type=unit_interval,
                         help="box score threshold 0..1 (default: the profile's)")

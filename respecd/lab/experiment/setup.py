@@ -3,6 +3,7 @@ with its cache, and the measured latency table."""
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -15,7 +16,8 @@ from respecd.lab.experiment.outcomes import Evaluator
 if TYPE_CHECKING:
     from respecd.config import Profile
 
-__all__ = ["load_detector", "make_evaluator", "perception_identity", "rgb_resolutions", "shipped_table_path"]
+__all__ = ["add_validation_arguments", "load_detector", "make_evaluator", "perception_identity", "rgb_resolutions",
+           "shipped_table_path"]
 
 log = structlog.get_logger(__name__)
 
@@ -70,3 +72,18 @@ def rgb_resolutions(controller: Any) -> list[tuple[int, int]]:
         if slot.modality == "rgb":
             out += [(int(s[0]), int(s[1])) for s in slot.settings if isinstance(s, tuple)]
     return sorted(set(out), key=lambda r: r[0] * r[1])
+
+
+def add_validation_arguments(parser: argparse.ArgumentParser) -> None:
+    """The options of a command that runs on validation worlds (seeds 500 on, disjoint from training's and
+    every held-out set's): the profile, the worlds, the latency table and the outcome cache."""
+    from respecd.argtypes import positive_float, positive_int, seed
+    from respecd.lab.experiment.platforms import DEFAULT_PLATFORM
+
+    parser.add_argument("--profile", default="builtin:sim-rover")
+    parser.add_argument("--seed", type=seed, default=500, help="first world seed (default 500: validation)")
+    parser.add_argument("--worlds", type=positive_int, default=3, help="sets of worlds, at least 1 (default 3)")
+    parser.add_argument("--duration", type=positive_float, default=20.0, help="seconds a world (default 20)")
+    parser.add_argument("--latency", default=DEFAULT_PLATFORM,
+                        help=f"latency table: {DEFAULT_PLATFORM} (default), cpu or a file")
+    parser.add_argument("--cache-dir", type=Path)
