@@ -264,9 +264,7 @@ class PerceptionStage:
     def _infer(self, frames: dict[Any, Any], attribute: bool, prepared: Future[Any] | None) -> Percept:
         """The detector on ``frames`` (its thread), with the input prepared ahead when it is there:
         waited for if the preparer is on it, prepared here if it has not started or failed."""
-        if prepared is None or prepared.cancel():
-            return self._infer_intact(frames, attribute)
-        aligned = prepared.result()
+        aligned = None if prepared is None or prepared.cancel() else prepared.result()
         if aligned is None:
             return self._infer_intact(frames, attribute)
         return self._detector.infer(frames, attribute, aligned)
@@ -344,4 +342,3 @@ class PerceptionStage:
             self._attribution_requested = False
             self._last_attribution_t = t
         return due
-
