@@ -128,6 +128,34 @@ async def test_learn_on_a_fresh_state_dir_starts_from_the_shipped_table(tmp_path
     assert cold.stage.table_source == "new" and cold.stage.controller.table.updates == 0
 
 
+async def test_a_warm_started_learner_acts_on_what_the_shipped_table_learned(tmp_path: Path) -> None:
+    """Greedy over a loaded table's optimistic (never tried) cells would run each sensor at whatever the
+    shipped table tried least; a warm-started learner acts as exploit does and explores at epsilon only."""
+    rig = Rig(tmp_path, "learn", warm_start=True)
+    await rig.stage._prepare()
+    controller, table = rig.stage.controller, rig.stage.controller.table
+    assert controller.refining
+    table.epsilon = 0.0
+    exploit = Rig(tmp_path / "exploit", "exploit")
+    await exploit.stage._prepare()
+    chosen = [controller._choose(state, ())[0] for state in range(table.shape[0])]
+    assert chosen == [exploit.stage.controller._choose(state, ())[0] for state in range(table.shape[0])]
+    optimistic = [s for s in range(table.shape[0]) if table.greedy(s) != chosen[s]]
+    assert len(optimistic) > table.shape[0] // 2  # states the shipped table barely knows: greedy picks untried cells
+
+    table.epsilon = 1.0  # every sensor explores: it still tries what the table never tried
+    assert len({controller._choose(optimistic[0], ())[0] for _ in range(50)}) > 1
+    newcomer, known = optimistic[0], next(s for s in range(table.shape[0]) if s in controller._learned_states())
+    assert newcomer not in controller._learned_states()
+    for _ in range(rig.stage.config.learning.exploit_min_visits):  # its own updates make a state learned
+        controller.learn(newcomer, chosen[newcomer], 0.5, newcomer)
+    assert newcomer in controller._learned_states() and known in controller._learned_states()
+
+    cold = Rig(tmp_path / "cold", "learn", warm_start=False)
+    await cold.stage._prepare()
+    assert not cold.stage.controller.refining  # learning from nothing: optimism explores
+
+
 async def test_learn_keeps_its_own_table_over_the_shipped_one(tmp_path: Path) -> None:
     rig = Rig(tmp_path, "learn", warm_start=False)
     await rig.run(3.0)

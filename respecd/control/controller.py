@@ -76,6 +76,9 @@ class Controller:
         self._applied_changed = False
         self._applied_power: float | None = None
         self._learned: LearnedStates | None = None
+        # learn on a table that was loaded (the shipped one or the robot's own): act on what it learned and
+        # explore at epsilon only; optimism (an untried action's value) is for a table learned from nothing
+        self.refining = False
 
     @classmethod
     def from_profile(
@@ -175,8 +178,13 @@ class Controller:
         the transitions logs recorded through it); the TD error."""
         assert self.table is not None
         if isinstance(self.table, FactoredQTable):
-            return self.table.update(state, action, reward, next_state, block_rewards, self._immediate)
-        return self.table.update(state, action, reward, next_state)
+            error = self.table.update(state, action, reward, next_state, block_rewards, self._immediate)
+        else:
+            error = self.table.update(state, action, reward, next_state)
+        if self._learned is not None:  # the learned states change only when this one just became learned
+            became = self.table.updates_of(state) == self.config.learning.exploit_min_visits
+            self._learned = None if became else self._learned.at(self.table.updates)
+        return error
 
     def _block_rewards(self, reward: float, applied: Mapping[str, SensorConfig] | None,
                        radar_points: float | None) -> list[float] | None:
@@ -200,14 +208,32 @@ class Controller:
         assert self.table is not None
         if self.policy == "exploit":
             return self._exploit(state)
+        if self.refining:
+            return self._refine(state)
         action = self.table.choose(state, self.epsilon)
         return action, self.space.apply(self.position, action)
 
-    def _exploit(self, state: int) -> tuple[int, Position]:
+    def _refine(self, state: int) -> tuple[int, Position]:
+        """Learn on a loaded table: exploit's action, each sensor (block) explored with probability
+        epsilon. The optimistic value of an action the table never tried would otherwise beat every
+        learned one, and a warm-started robot would run its sensors at whatever it tried least."""
+        assert self.table is not None
+        action, _ = self._exploit(state, epsilon=0.0)
+        epsilon, rng = self.epsilon, self.table.rng
+        if isinstance(self.table, FactoredQTable):
+            cells = [int(rng.integers(size)) if epsilon > 0.0 and rng.random() < epsilon else cell
+                     for cell, size in zip(self.table.cells(action), self.table.blocks, strict=True)]
+            action = self.table.encode(cells)
+        elif epsilon > 0.0 and rng.random() < epsilon:
+            action = int(rng.integers(self.space.n))
+        return action, self.space.apply(self.position, action)
+
+    def _exploit(self, state: int, epsilon: float | None = None) -> tuple[int, Position]:
         """Best learned action; in a state never learned in (fewer than ``exploit_min_visits``
         updates), that of the nearest learned state (``exploit_unseen: nearest``) or hold."""
         assert self.table is not None
-        epsilon = self.config.learning.epsilon_exploit
+        if epsilon is None:
+            epsilon = self.config.learning.epsilon_exploit
         if epsilon > 0.0 and self.table.rng.random() < epsilon:
             action: int | None = int(self.table.rng.integers(self.space.n))
         else:

@@ -1,10 +1,11 @@
-"""Where a frozen table has learned, and the nearest learned state to one it has not.
+"""Where a table has learned, and the nearest learned state to one it has not.
 
-``exploit`` acts on what the table learned; in a state with fewer than ``min_updates``
-updates it acts as in the nearest learned state (``StateSpace.distances``; the most
-updated among equals). A trained table has learned in a few percent of the 3645 states, and
-a world it was not trained on reaches combinations it never saw: holding the configuration
-there froze whatever the previous scene had left (issue #7).
+``exploit`` (and ``learn`` on a loaded table, between its epsilon draws) acts on what the
+table learned; in a state with fewer than ``min_updates`` updates it acts as in the nearest
+learned state (``StateSpace.distances``; the most updated among equals). A trained table has
+learned in a few percent of the 3645 states, and a world it was not trained on reaches
+combinations it never saw: holding the configuration there froze whatever the previous scene
+had left (issue #7).
 """
 
 from __future__ import annotations
@@ -29,6 +30,11 @@ class LearnedStates:
         self._grid = np.array([states.unindex(int(s)) for s in self._rows], dtype=np.int64).reshape(
             len(self._rows), len(states.dims))
         self._nearest: dict[int, int | None] = {}
+
+    def at(self, version: int) -> LearnedStates:
+        """The same learned states, valid for a later table version (an update that left them as they were)."""
+        self.version = version
+        return self
 
     def __contains__(self, state: int) -> bool:
         return state in self._known

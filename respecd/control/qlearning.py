@@ -54,6 +54,10 @@ class QTable:
         """Updates per state (each visits one column here, one per block in a factored table)."""
         return updates_per_state(self.visits, 1)
 
+    def updates_of(self, state: int) -> int:
+        """Updates of one state (``state_updates`` for one row)."""
+        return int(self.visits[state].sum())
+
     def update(self, state: int, action: int, reward: float, next_state: int) -> float:
         """One Watkins update; returns the TD error."""
         target = reward + self.learning.discount * self._row_max(next_state)
@@ -134,6 +138,9 @@ class FactoredQTable(QTable):
 
     def state_updates(self) -> np.ndarray:
         return updates_per_state(self.visits, len(self.blocks))
+
+    def updates_of(self, state: int) -> int:
+        return int(self.visits[state].sum()) // len(self.blocks)
 
     def cells(self, action: int) -> list[int]:
         """Each block's cell in an action id."""

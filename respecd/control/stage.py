@@ -226,6 +226,7 @@ class ControllerStage:
             if await asyncio.to_thread(load_shipped, table, layout):
                 source = f"shipped ({table.updates} updates)"
         self._saved_updates = table.updates
+        self.controller.refining = self.config.policy == "learn" and source is not None
         if source is None and self.config.policy == "exploit":
             if tables.strict and not tables.allow_none:
                 where = str(tables.load) if tables.load is not None else "no --table given"
