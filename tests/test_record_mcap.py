@@ -305,3 +305,28 @@ async def test_close_gives_up_queued_frames_to_finish_in_time(tmp_path: Path) ->
     log = open_log(recorder.paths[0])
     assert len(list(log.frames("cam"))) + 1 + recorder.dropped == 401
     assert not log.truncated and log.channels["/respecd/decision"].count == 1  # cheap messages always kept
+
+
+async def test_an_undecodable_replayed_frame_is_left_out_with_one_warning_and_no_traceback(tmp_path: Path) -> None:
+    """A replayed log's damaged image reaches the recorder as a LazyFrame that cannot decode: input, not a bug."""
+    from structlog.testing import capture_logs
+
+    from respecd.errors import UndecodableImageError
+    from respecd.record.lazy import LazyFrame
+
+    def cut() -> np.ndarray:
+        raise UndecodableImageError("JPEG cut short")
+
+    config = RecordingConfig(enabled=True, path=str(tmp_path / "log.mcap"), queue_size=64)
+    recorder = Recorder(config, PROFILE, ManualClock())
+    with capture_logs() as logs:
+        recorder.start()
+        for seq in range(3):
+            recorder.on_frame("cam", LazyFrame("rgb", seq / 30, seq, decode=cut, shape=(360, 640, 3)))
+        recorder.on_frame("cam", Frame("rgb", 0.1, 3, np.zeros((360, 640, 3), np.uint8)))
+        await recorder.close()
+    warned = [e for e in logs if e["event"] == "record.frame_undecodable"]
+    assert len(warned) == 1 and "rgb frame 0" in warned[0]["error"] and "exc_info" not in warned[0]
+    assert not [e for e in logs if e["event"] == "record.encode_failed"]
+    assert recorder.undecodable == 3 and recorder.errors == 0
+    assert [f.seq for f in open_log(recorder.paths[0]).frames("cam")] == [3]

@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import structlog
 
 from respecd.clock import Clock
+from respecd.errors import UndecodableImageError
 from respecd.messages import Bundle, Decision, Frame, Percept, SensorConfig
 from respecd.priority import lower_thread_priority
 from respecd.record import codec, events, png
@@ -115,6 +116,7 @@ class Recorder:
         self.channels = frozenset(config.channels)
         self.dropped = 0
         self.errors = 0
+        self.undecodable = 0  # replayed frames whose images did not decode (left out)
         self.cpu_s = 0.0  # worker thread CPU time, for the overhead benchmark
         self._formats = _formats(config, self.profile)
         self._scene = Scene(self.profile)
@@ -238,7 +240,8 @@ class Recorder:
         lost = self._segments.lost if self._segments else 0
         mib = round(self._segments.on_disk_bytes / 2**20, 1) if self._segments else 0.0
         log.info("record.closed", paths=[str(p) for p in self.paths], messages=self.written, mib=mib,
-                 dropped=self.dropped, lost=lost, encode_errors=self.errors)
+                 dropped=self.dropped, lost=lost, encode_errors=self.errors,
+                 undecodable=self.undecodable)
 
     # -- worker thread -------------------------------------------------------------------
     def _run(self) -> None:
@@ -259,6 +262,10 @@ class Recorder:
                     continue
                 try:
                     self._write(kind, name, item)
+                except UndecodableImageError as err:  # a replayed log's damaged frame: input, not a bug here
+                    self.undecodable += 1
+                    if self.undecodable == 1:  # once: the perception stage names each sensor's first
+                        log.warning("record.frame_undecodable", sensor=name or None, error=str(err))
                 except Exception as err:  # noqa: BLE001 - thread boundary: one bad message must not end the log
                     self.errors += 1  # the disk's errors never get here (the file sink pauses): an encoding bug
                     if self.errors == 1:  # once, with the traceback; the count is in the closing line
