@@ -33,11 +33,10 @@ def main(args: argparse.Namespace) -> int:
     manifest = export.export(model, args.out, export.checkpoint_hash(path), args.weights)
     check = _check(model, args.out, manifest)
     for name, graph in manifest["graphs"].items():
-        for key in ("file", export.NCHWC):
-            if key in graph:
-                size = (args.out / graph[key]).stat().st_size
-                print(f"{args.out / graph[key]}: {name} ({', '.join(graph['inputs'])} -> "
-                      f"{', '.join(graph['outputs'])}), {size / 1e6:.1f} MB{check.get(graph[key], '')}")
+        for file in export.graph_files(graph):
+            size = (args.out / file).stat().st_size
+            print(f"{args.out / file}: {name} ({', '.join(graph['inputs'])} -> "
+                  f"{', '.join(graph['outputs'])}), {size / 1e6:.1f} MB{check.get(file, '')}")
     print(f"{args.out / export.MANIFEST}: {manifest['checkpoint']} sha256 {manifest['sha256'][:16]}..., "
           f"opset {manifest['opset']}")
     return 0
@@ -61,7 +60,7 @@ def _check(model, folder: Path, manifest: dict) -> dict[str, str]:
         with torch.no_grad():
             want = part.module(*part.example)
         graph = manifest["graphs"][part.name]
-        for file in (graph[key] for key in ("file", export.NCHWC) if key in graph):
+        for file in export.graph_files(graph):
             session = onnxruntime.InferenceSession(str(folder / file), providers=["CPUExecutionProvider"])
             got = session.run(None, feeds)
             worst = max(float((torch.from_numpy(g) - w).abs().max()) for g, w in zip(got, want, strict=True))

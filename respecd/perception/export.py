@@ -104,6 +104,11 @@ def _export_part(part: Part, path: Path) -> None:
                           do_constant_folding=True)
 
 
+def graph_files(graph: dict[str, Any]) -> list[str]:
+    """The files of one part in a manifest: the plain graph, then its ``nchwc`` variant where there is one."""
+    return [graph[key] for key in ("file", NCHWC) if key in graph]
+
+
 def read_manifest(folder: Path, spec: ModelSpec | None = None) -> dict[str, Any]:
     """The manifest of an export folder, checked: format, the graphs present, the spec (when given)."""
     path = folder / MANIFEST
@@ -116,7 +121,7 @@ def read_manifest(folder: Path, spec: ModelSpec | None = None) -> dict[str, Any]
     found = manifest.get("format") if isinstance(manifest, dict) else None
     if found != FORMAT or not isinstance(manifest.get("graphs"), dict):
         raise ConfigError(f"{path}: export format {found!r}, expected {FORMAT!r} (re-run `respecd export`)")
-    files = [g[key] for g in manifest["graphs"].values() for key in ("file", NCHWC) if key in g]
+    files = [f for g in manifest["graphs"].values() for f in graph_files(g)]
     missing = [f for f in files if not (folder / f).is_file()]
     if missing:
         raise ConfigError(f"{folder}: the export lacks {', '.join(missing)}")
