@@ -7,9 +7,7 @@ the run ends:
 - the GIL switch interval at ``GIL_SWITCH_INTERVAL_S`` while the session runs;
 - the loop's thread in real-time scheduling where permitted (``sync.realtime_priority``,
   respecd.priority), so a busy neighbour process does not delay the synchronizer's ticks;
-- ``gc.freeze`` once the pipeline is up: what start-up made (modules, the detector, the profile)
-  lives as long as the run, so out of the collector's sight a full collection scans only what
-  the run allocates since (with torch loaded one took tens of ms, on the loop or a stage's thread);
+- start-up's objects frozen out of the collector's sight once the pipeline is up (respecd.gcfreeze);
 - the C heap's freed pages handed back every ``HEAP_TRIM_PERIOD_S`` (respecd.heap);
 - sd_notify: READY=1, STATUS= with the status line every ``telemetry.status_period_s``,
   WATCHDOG=1 while the loop is alive and supervising (respecd.liveness), STOPPING=1;
@@ -22,7 +20,6 @@ SIGTERM/SIGINT/SIGHUP are noted from the command's first moment (respecd.signals
 from __future__ import annotations
 
 import asyncio
-import gc
 import sys
 from collections.abc import Callable, Coroutine
 from typing import Any
@@ -30,6 +27,7 @@ from typing import Any
 import structlog
 
 from respecd import heap, priority
+from respecd.gcfreeze import StartupFreeze
 from respecd.liveness import Liveness, status_text
 from respecd.sdnotify import Notifier
 from respecd.session import Session
@@ -71,7 +69,7 @@ class Daemon:
         hooks.stopping.append(self._stopping)
         self._chores: dict[str, asyncio.Task[None]] = {}
         self._withheld: list[str] = []  # why the watchdog is not fed, as last logged
-        self._froze = False
+        self._freeze = StartupFreeze()
         self.loop_scheduling = "normal: not running"  # what the loop's thread runs as (priority.realtime_loop)
 
     async def run(self, duration: float | None = None, stop: asyncio.Event | None = None) -> None:
@@ -91,17 +89,14 @@ class Daemon:
             self._cancel_chores()
             await asyncio.gather(*self._chores.values(), return_exceptions=True)
             self.notifier.close()
-            if self._froze:
-                gc.unfreeze()
+            self._freeze.release()
             restore_scheduling()
             sys.setswitchinterval(previous)
             if relay is not None:
                 relay.stop()
 
     def _up(self) -> None:
-        self._froze = gc.get_freeze_count() == 0
-        gc.collect()
-        gc.freeze()
+        self._freeze.up()
         self.notifier.ready(status="pipeline up")
         self._spawn("status", self._status_loop())
         if heap.available():

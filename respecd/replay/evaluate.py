@@ -21,7 +21,6 @@ on a scaled wall clock with measured latencies, like a live run (not determinist
 from __future__ import annotations
 
 import asyncio
-import gc
 import math
 import time
 from collections.abc import Callable
@@ -35,6 +34,7 @@ from respecd.control.features import IMAGE_FEATURE_MODALITIES
 from respecd.control.persist import StoredTable, table_meta, table_path
 from respecd.drivers.replay import ReplayConfig
 from respecd.errors import InputError
+from respecd.gcfreeze import StartupFreeze
 from respecd.replay import detector, watch
 from respecd.replay import report as rpt
 from respecd.replay.ending import LogEnd
@@ -196,18 +196,16 @@ class _Replay:
             session.hooks.up.insert(0, clock.restart)  # log time starts with the pipeline, not before it
         marks: list[tuple[float, float, float]] = []  # the replay loop alone: weight loading excluded
         session.hooks.up.append(lambda: marks.append((time.perf_counter(), time.process_time(), time.thread_time())))
-        # what start-up made (modules, the detector) lives through the replay: out of the collector's
-        # sight, as in the daemon, a full collection does not hold the GIL for tens of ms (the detector's
-        # thread, the replay's critical path, waits for it)
-        frozen_before = gc.get_freeze_count()
-        session.hooks.up.append(gc.freeze)
+        # as in the daemon: a full collection would hold the GIL the detector's thread, the replay's
+        # critical path, waits for (no collection first: the replay's clock is running by then)
+        freeze = StartupFreeze(collect=False)
+        session.hooks.up.append(freeze.up)
         try:
             await self._drive(session, clock, lockstep, stop)
         finally:
             if signals is not None:
                 signals.unbind()
-            if not frozen_before:
-                gc.unfreeze()
+            freeze.release()
         started, cpu0, loop0 = marks[0] if marks else (time.perf_counter(), time.process_time(), time.thread_time())
         wall, cpu, loop_cpu = time.perf_counter() - started, time.process_time() - cpu0, time.thread_time() - loop0
         end = min(max(clock.now(), self.t0), self.t0 + self.duration)
