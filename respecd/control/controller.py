@@ -214,11 +214,11 @@ class Controller:
         return action, self.space.apply(self.position, action)
 
     def _refine(self, state: int) -> tuple[int, Position]:
-        """Learn on a loaded table: exploit's action, each sensor (block) explored with probability
+        """Learn on a loaded table: the best learned action, each sensor (block) explored with probability
         epsilon. The optimistic value of an action the table never tried would otherwise beat every
         learned one, and a warm-started robot would run its sensors at whatever it tried least."""
         assert self.table is not None
-        action, _ = self._exploit(state, epsilon=0.0)
+        action, _ = self._best_learned(state)
         epsilon, rng = self.epsilon, self.table.rng
         if isinstance(self.table, FactoredQTable):
             cells = [int(rng.integers(size)) if epsilon > 0.0 and rng.random() < epsilon else cell
@@ -228,20 +228,24 @@ class Controller:
             action = int(rng.integers(self.space.n))
         return action, self.space.apply(self.position, action)
 
-    def _exploit(self, state: int, epsilon: float | None = None) -> tuple[int, Position]:
+    def _exploit(self, state: int) -> tuple[int, Position]:
+        """``_best_learned``, or with probability ``epsilon_exploit`` a random action."""
+        assert self.table is not None
+        epsilon = self.config.learning.epsilon_exploit
+        if epsilon > 0.0 and self.table.rng.random() < epsilon:
+            action = int(self.table.rng.integers(self.space.n))
+            return action, self.space.apply(self.position, action)
+        return self._best_learned(state)
+
+    def _best_learned(self, state: int) -> tuple[int, Position]:
         """Best learned action; in a state never learned in (fewer than ``exploit_min_visits``
         updates), that of the nearest learned state (``exploit_unseen: nearest``) or hold."""
         assert self.table is not None
-        if epsilon is None:
-            epsilon = self.config.learning.epsilon_exploit
-        if epsilon > 0.0 and self.table.rng.random() < epsilon:
-            action: int | None = int(self.table.rng.integers(self.space.n))
-        else:
-            learned = self._learned_states()
-            action = self.table.greedy_tried(state) if state in learned else None
-            if action is None and self.config.learning.exploit_unseen == "nearest":
-                stand_in = learned.nearest(state)
-                action = None if stand_in is None else self.table.greedy_tried(stand_in)
+        learned = self._learned_states()
+        action = self.table.greedy_tried(state) if state in learned else None
+        if action is None and self.config.learning.exploit_unseen == "nearest":
+            stand_in = learned.nearest(state)
+            action = None if stand_in is None else self.table.greedy_tried(stand_in)
         if action is None:
             return self.space.hold_action(self.position), self.position
         return action, self.space.apply(self.position, action)
