@@ -138,6 +138,30 @@ def test_outcome_is_computed_once_and_replayed(profile, tmp_path: Path) -> None:
     reopened.close()
 
 
+def test_an_outcome_without_an_rgb_frame_is_drawn_at_the_rgb_cameras_size(profile) -> None:
+    """With the RGB camera off its boxes still live in its pixels (the ground truth is drawn there): the
+    detector's grid is the camera's size, and two sizes are two outcomes, whichever is asked for first."""
+    detector = load_detector(profile, random_init=True)
+    cache = OutcomeCache(None)
+    fp = fingerprint(model_hash(detector.model), perception_identity(detector, profile))
+    evaluator = Evaluator(detector, cache, fp)
+    world = Rollout(profile, evaluator, {}).world(Piece("behind-curtain", 1, 5.0))
+    align, grids = detector.aligner.align, []
+
+    def recording_align(frames, rgb_size=None):  # type: ignore[no-untyped-def]
+        aligned = align(frames, rgb_size)
+        grids.append(aligned.size)
+        return aligned
+
+    detector.aligner.align = recording_align
+    for size in ((1280, 720), (640, 360), (1280, 720)):
+        configs = {"rgb": SensorConfig("rgb", False, 10.0, size),
+                   "thermal": SensorConfig("thermal", rate_hz=10.0, resolution=(160, 120)),
+                   "radar": SensorConfig("radar", rate_hz=10.0, mode="range")}
+        evaluator.outcome(world, configs, 2.05, attribute=False)
+    assert grids == [(1280, 720), (640, 360)] and (cache.misses, cache.hits) == (2, 1)
+
+
 def test_a_computed_outcome_is_the_one_a_later_run_replays(tmp_path: Path) -> None:
     """The cache keeps boxes to 0.01 px and scores to 1e-5; a run that computes an outcome must use those values
     too, or a run with misses and one from the cache score a box at the IoU or ranking edge differently."""

@@ -123,6 +123,27 @@ def test_missing_rgb_uses_default_size_and_zero_planes() -> None:
     assert not aligned.tensor.any() and aligned.presence.tolist() == [0.0, 0.0]
 
 
+def test_a_stalled_rgb_camera_leaves_the_aux_planes_on_its_own_pixel_grid() -> None:
+    """Boxes are drawn and published in the RGB camera's pixels: when its frame drops out of a bundle
+    (stalled, failed, undecodable) the thermal and radar planes stay on the grid it last delivered,
+    so a radar-only box lands where the camera's image shows the person."""
+    aligner = Aligner(PerceptionConfig(), {"rgb": RGB_CAL})
+    points = _frame("radar", np.array([[0.5, 4.0, 0.2, 0.0, 30.0]], np.float32))
+    hot = np.full((120, 160), 295.0, np.float32)
+    hot[50:70, 90:100] = 305.0
+    aux = {"radar": points, "thermal": _frame("thermal", hot, units="kelvin")}
+    with_rgb = aligner.align({"rgb": _frame("rgb", np.zeros((720, 1280, 3), np.uint8)), **aux})
+    without = aligner.align(aux)
+    assert without.size == with_rgb.size == (1280, 720)
+    np.testing.assert_array_equal(without.tensor[3:], with_rgb.tensor[3:])
+    assert not without.tensor[:3].any()
+    assert aligner.align(aux, rgb_size=(960, 540)).size == (960, 540)  # a caller that knows the size says it
+    aligner.forget_rgb_size()  # a new session: back to the calibrated size, before any frame
+    assert aligner.align(aux).size == (640, 360)
+    calibrated_hd = Calibration(intrinsics=Intrinsics(fx=914.0, fy=914.0, cx=640.0, cy=360.0, width=1280, height=720))
+    assert Aligner(PerceptionConfig(), {"rgb": calibrated_hd}).align(aux).size == (1280, 720)
+
+
 def test_rgb_planes_are_r_g_b_over_255_and_padding_stays_zero() -> None:
     """The camera delivers BGR; the net's first three planes are R, G, B in 0..1, padded to a multiple of 32."""
     bgr = np.random.default_rng(3).integers(0, 256, (360, 640, 3), dtype=np.uint8)

@@ -188,13 +188,14 @@ def test_a_replay_prepares_the_next_bundle_while_the_detector_runs(
     def which(frames: dict[str, Any]) -> dict[str, tuple[int, float]]:
         return {m: (f.seq, f.t) for m, f in frames.items() if m in ("rgb", "thermal", "radar")}
 
-    def prepare(self: FusionDetector, frames: dict[str, Any]) -> Any:
-        aligned = real_prepare(self, frames)
+    def prepare(self: FusionDetector, frames: dict[str, Any], rgb_size: Any = None) -> Any:
+        aligned = real_prepare(self, frames, rgb_size)
         if threading.current_thread().name.startswith("perception-prepare"):
             ahead[id(aligned)] = which(frames)
         return aligned
 
-    def infer(self: FusionDetector, frames: dict[str, Any], attribute: bool, aligned: Any = None) -> Any:
+    def infer(self: FusionDetector, frames: dict[str, Any], attribute: bool, aligned: Any = None,
+              rgb_size: Any = None) -> Any:
         ran.append((which(frames), aligned))
         if aligned is not None:
             here = real_prepare(self, frames)
@@ -203,7 +204,7 @@ def test_a_replay_prepares_the_next_bundle_while_the_detector_runs(
                     and here.presence.tobytes() == aligned.presence.tobytes())
             if not same:
                 mismatched.append(which(frames))
-        return real_infer(self, frames, attribute, aligned)
+        return real_infer(self, frames, attribute, aligned, rgb_size)
 
     monkeypatch.setattr(FusionDetector, "prepare", prepare)
     monkeypatch.setattr(FusionDetector, "infer", infer)
@@ -234,9 +235,9 @@ def test_nothing_is_prepared_ahead_when_the_detector_takes_every_core(
     config = _with_detector(session_log, tmp_path, torch_threads=len(os.sched_getaffinity(0)))
     threads: list[str] = []
     real_prepare = FusionDetector.prepare
-    def prepare(self: FusionDetector, frames: dict[str, Any]) -> Any:
+    def prepare(self: FusionDetector, frames: dict[str, Any], rgb_size: Any = None) -> Any:
         threads.append(threading.current_thread().name)
-        return real_prepare(self, frames)
+        return real_prepare(self, frames, rgb_size)
 
     monkeypatch.setattr(FusionDetector, "prepare", prepare)
     entry = replay(session_log, config=config, policy="static", duration=1.0)["policies"]["static"]

@@ -27,6 +27,7 @@ from respecd.perception.config import PerceptionConfig
 from respecd.sensors import Calibration, Intrinsics, rotation_rpy  # noqa: F401 - rotation_rpy re-exported
 
 DEFAULT_RGB_HFOV_DEG = 70.0  # used only when the RGB camera has no calibrated intrinsics
+DEFAULT_RGB_SIZE = (640, 360)  # the canvas before any RGB frame, when the RGB camera has no calibrated intrinsics
 RADAR_SNR_FULL_DB = 30.0  # SNR mapped to full splat intensity
 
 
@@ -58,10 +59,25 @@ class Aligner:
         self.aux = config.model.aux_modalities
         self.calibration = calibration or {}
         self.plane_depth_m = config.plane_depth_m
+        self.rgb_size = self._first_rgb_size()
 
-    def align(self, frames: dict[str, Frame], default_size: tuple[int, int] = (640, 360)) -> AlignedInput:
+    def _first_rgb_size(self) -> tuple[int, int]:
+        cal = self.calibration.get("rgb")
+        return (cal.intrinsics.width, cal.intrinsics.height) if cal and cal.intrinsics else DEFAULT_RGB_SIZE
+
+    def forget_rgb_size(self) -> None:
+        """Back to the canvas before any RGB frame (a new session on a shared detector)."""
+        self.rgb_size = self._first_rgb_size()
+
+    def align(self, frames: dict[str, Frame], rgb_size: tuple[int, int] | None = None) -> AlignedInput:
+        """The input for ``frames``, on the RGB frame's pixel grid: detections come out in the RGB camera's
+        pixels, where the daemon draws and publishes them. Without an RGB frame (the camera stalled or
+        failed) the grid is ``rgb_size``, else the last RGB frame's size (at first the calibrated one)."""
         rgb = frames.get("rgb")
-        w, h = (rgb.data.shape[1], rgb.data.shape[0]) if rgb is not None else default_size
+        if rgb is not None:
+            w, h = self.rgb_size = (rgb.data.shape[1], rgb.data.shape[0])
+        else:
+            w, h = rgb_size or self.rgb_size
         hp, wp = pad_to_stride(h, w)
         out = np.zeros((3 + len(self.aux), hp, wp), dtype=np.float32)
         if rgb is not None:

@@ -112,19 +112,26 @@ class FusionDetector:
         offline evaluator scores each call alone and applies the decay itself)."""
         self.scores = self.scene_scores()
 
-    def prepare(self, frames: dict[str, Frame]) -> AlignedInput:
-        """The network's input for ``frames`` (decoded, aligned, normalised): all ``infer`` does before
-        the network. Depends on the frames alone (the calibration is fixed); raises what decoding raises."""
-        return self.aligner.align(frames)
+    def start_session(self) -> None:
+        """Forget what an earlier session on this detector left: its scene score and RGB frame size."""
+        self.reset_scene_scores()
+        self.aligner.forget_rgb_size()
 
-    def infer(self, frames: dict[str, Frame], attribute: bool, aligned: AlignedInput | None = None) -> Percept:
+    def prepare(self, frames: dict[str, Frame], rgb_size: tuple[int, int] | None = None) -> AlignedInput:
+        """The network's input for ``frames`` (decoded, aligned, normalised): all ``infer`` does before
+        the network; without an RGB frame, on ``rgb_size`` or the last RGB frame's grid (``Aligner.align``).
+        Raises what decoding raises."""
+        return self.aligner.align(frames, rgb_size)
+
+    def infer(self, frames: dict[str, Frame], attribute: bool, aligned: AlignedInput | None = None,
+              rgb_size: tuple[int, int] | None = None) -> Percept:
         """Detections (+ contributions when ``attribute``) for one set of synchronized frames.
 
         ``aligned``: ``prepare(frames)`` done already (a replay prepares the next bundle while
-        this detector runs on the current one); None: prepared here."""
+        this detector runs on the current one); None: prepared here. ``rgb_size``: see ``prepare``."""
         start = time.perf_counter()
         if aligned is None:
-            aligned = self.prepare(frames)
+            aligned = self.prepare(frames, rgb_size)
         t = max((f.t for f in frames.values()), default=0.0)
         result = self.run(aligned, attribute, t)
         return Percept(

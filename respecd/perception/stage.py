@@ -312,7 +312,7 @@ class PerceptionStage:
         for thread in entry.stragglers:  # the last session's inference ends before this one starts
             thread.join()
         entry.stragglers = []
-        entry.detector.reset_scene_scores()
+        entry.detector.start_session()
         self._shared_entry = entry
         return entry.detector
 

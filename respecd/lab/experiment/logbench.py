@@ -30,7 +30,7 @@ import numpy as np
 
 from respecd.errors import InputError
 from respecd.lab.experiment.cache import OutcomeCache, outcome_key
-from respecd.lab.experiment.outcomes import MOTION_IMAGERS, Outcome, detect
+from respecd.lab.experiment.outcomes import MOTION_IMAGERS, Outcome, canvas_parts, detect, rgb_canvas
 from respecd.lab.experiment.rollout import Piece
 from respecd.messages import Frame, SensorConfig
 from respecd.record import codec
@@ -137,8 +137,10 @@ class LogEvaluator:
         earlier = {m: self._pick(m, configs[m], t_log - 1.0 / configs[m].rate_hz) for m in MOTION_IMAGERS
                    if m in picks}
         before = {m: j for m, j in earlier.items() if j is not None}
+        rgb_size = rgb_canvas(configs, picks)
         parts = [f"{m}:{i}:{res[m]}:{configs[m].mode}" for m, i in picks.items()]
         parts += [f"before {m}:{j}" for m, j in before.items()]
+        parts += canvas_parts(rgb_size)
         key = outcome_key(self.fingerprint, "", parts, attribute)  # the motion cue's previous frame is in the key
         cached = self.cache.get(key)
         if cached is not None:
@@ -146,7 +148,7 @@ class LogEvaluator:
         start = time.perf_counter()
         frames = {m: self._deliver(m, i, configs[m]) for m, i in picks.items()}
         prev = {m: self._deliver(m, j, configs[m]) for m, j in before.items()}
-        result = detect(self.detector, frames, prev, attribute)
+        result = detect(self.detector, frames, prev, attribute, rgb_size)
         self.inference_s += time.perf_counter() - start
         self.cache.put(key, result.to_json())
         return result

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import time
 from collections import OrderedDict
-from collections.abc import Mapping
+from collections.abc import Collection, Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -83,12 +83,14 @@ class Evaluator:
         """The frame before each imager's current one: what the motion cue compares it with."""
         return {m: previous(ids[m], configs[m].rate_hz) for m in MOTION_IMAGERS if m in ids}
 
-    def key(self, world: World, ids: dict[str, FrameId], before: dict[str, FrameId], attribute: bool) -> str:
-        """The cache key of an outcome: every frame it was computed from. The previous frames
-        count because the imager's rate sets them and a thermal frame id does not hold the
-        rate: without them the first rate to ask for a frame set its motion for every rate."""
+    def key(self, world: World, ids: dict[str, FrameId], before: dict[str, FrameId], attribute: bool,
+            rgb_size: tuple[int, int] | None = None) -> str:
+        """The cache key of an outcome: every frame it was computed from (and without an RGB frame,
+        the RGB camera's size its boxes are drawn at). The previous frames count because the imager's
+        rate sets them and a thermal frame id does not hold the rate: without them the first rate to
+        ask for a frame set its motion for every rate."""
         parts = [f.key() for f in ids.values()] + [f"before {f.key()}" for f in before.values()]
-        return outcome_key(self.fingerprint, world_key(world), parts, attribute)
+        return outcome_key(self.fingerprint, world_key(world), parts + canvas_parts(rgb_size), attribute)
 
     def outcome(self, world: World, configs: Mapping[str, SensorConfig], t: float, attribute: bool,
                 slot: int | None = None) -> Outcome:
@@ -98,12 +100,13 @@ class Evaluator:
         """
         ids = self.frame_ids(configs, t, slot)
         before = self.previous_ids(ids, configs)
-        key = self.key(world, ids, before, attribute)
+        rgb_size = rgb_canvas(configs, ids)
+        key = self.key(world, ids, before, attribute, rgb_size)
         cached = self.cache.get(key)
         if cached is not None:
             return Outcome.from_json(cached)
         start = time.perf_counter()
-        stored = self._compute(world, ids, before, attribute).to_json()
+        stored = self._compute(world, ids, before, attribute, rgb_size).to_json()
         self.inference_s += time.perf_counter() - start
         self.cache.put(key, stored)
         # what a later run replays (boxes to 0.01 px, scores to 1e-5), not the unrounded arrays: a run that
@@ -121,10 +124,10 @@ class Evaluator:
         return frame
 
     def _compute(self, world: World, ids: dict[str, FrameId], before: dict[str, FrameId],
-                 attribute: bool) -> Outcome:
+                 attribute: bool, rgb_size: tuple[int, int] | None) -> Outcome:
         frames = {m: self._render(world, fid) for m, fid in ids.items()}
         prev = {m: self._render(world, fid) for m, fid in before.items()}
-        return detect(self.detector, frames, prev, attribute)
+        return detect(self.detector, frames, prev, attribute, rgb_size)
 
     # the hooks a rollout uses to reach its scenes (a recorded log provides the same ones)
     def world(self, piece: Any, simulation: Any) -> World:
@@ -148,14 +151,29 @@ class Evaluator:
         return imu_frame(world, t).data
 
 
-def detect(detector: Any, frames: dict[str, Frame], previous: dict[str, Frame], attribute: bool) -> Outcome:
+def rgb_canvas(configs: Mapping[str, SensorConfig], inputs: Collection[str]) -> tuple[int, int] | None:
+    """The RGB camera's size where ``inputs`` hold no RGB frame (its boxes are drawn there); else None."""
+    rgb = configs.get("rgb")
+    if "rgb" in inputs or rgb is None or rgb.resolution is None:
+        return None
+    return (rgb.resolution[0], rgb.resolution[1])
+
+
+def canvas_parts(rgb_size: tuple[int, int] | None) -> list[str]:
+    """What an outcome's cache key adds for ``rgb_canvas``: nothing where an RGB frame sets the grid."""
+    return [f"canvas {rgb_size[0]}x{rgb_size[1]}"] if rgb_size else []
+
+
+def detect(detector: Any, frames: dict[str, Frame], previous: dict[str, Frame], attribute: bool,
+           rgb_size: tuple[int, int] | None = None) -> Outcome:
     """Run the detector on ``frames`` and take the scene features the controller's state needs.
 
-    ``previous``: each imager's frame before the current one (the motion cue compares them).
+    ``previous``: each imager's frame before the current one (the motion cue compares them);
+    ``rgb_size``: the RGB camera's size where ``frames`` hold no RGB frame (``rgb_canvas``).
     """
     if attribute:  # a fresh score per call: the decay between calls is the rollout's job
         detector.reset_scene_scores()
-    percept = detector.infer(frames, attribute)
+    percept = detector.infer(frames, attribute, rgb_size=rgb_size)
     boxes = np.array([d.box for d in percept.detections], dtype=np.float32).reshape(-1, 4)
     scores = np.array([d.confidence for d in percept.detections], dtype=np.float32)
     fresh = percept.contributions if attribute and percept.detections else None
