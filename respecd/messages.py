@@ -77,7 +77,7 @@ class Bundle:
 
 @dataclass(frozen=True, slots=True)
 class Detection:
-    """One detected object in RGB pixel coordinates of the bundle's RGB frame."""
+    """One detected object in the RGB camera's pixels (its last frame's size when a bundle has none)."""
 
     box: tuple[float, float, float, float]  # x1, y1, x2, y2
     confidence: float
