@@ -199,6 +199,16 @@ def test_averaged_candidate_differs_from_m44_only_in_the_step_size_floor():
     assert m44_learning["learning_rate"] == 0.2 and averaged_learning == {**m44_learning, "learning_rate": 0.05}
 
 
+def test_truth_candidate_differs_from_m44_only_in_what_quality_reads():
+    m44 = load_profile(LAB_PROFILES / "sim-rover-per-sensor-slowest-44-immediate.yaml").model_dump()
+    truth = load_profile(LAB_PROFILES / "sim-rover-per-sensor-slowest-44-truth.yaml").model_dump()
+    assert truth.pop("name") == "sim-rover-per-sensor-slowest-44-truth"
+    m44.pop("name")
+    assert m44["controller"]["reward"].pop("quality") == "confagg"
+    assert truth["controller"]["reward"].pop("quality") == "truth"
+    assert truth == m44
+
+
 def test_the_profiles_sensor_union_holds_every_registered_driver():
     """``Profile.sensors`` is typed statically (mypy follows it); the registry is what starts drivers:
     a driver added to one must be added to the other."""

@@ -9,7 +9,7 @@ from respecd.control.actions import ActionSpace, Slot
 from respecd.control.config import ControllerConfig, Learning, RewardWeights, Thresholds
 from respecd.control.controller import Controller
 from respecd.control.qlearning import FactoredQTable, QTable
-from respecd.control.reward import reward_terms, sensing_delay, sensor_power, slowest_delay
+from respecd.control.reward import quality_signal, reward_terms, sensing_delay, sensor_power, slowest_delay
 from respecd.control.state import Observation, StateSpace
 from respecd.messages import SensorConfig
 from respecd.sensors import SensorPower
@@ -282,6 +282,22 @@ def test_default_reward_is_the_papers_change_term_as_a_level() -> None:
     up = reward_terms(weights, conf_prev=0.2, conf_now=0.7, power_w=0.0, latency_s=0.0, switched=False)
     same = reward_terms(weights, conf_prev=0.7, conf_now=0.7, power_w=0.0, latency_s=0.0, switched=False)
     assert up["quality"] == 0.0 and up["reward"] == same["reward"] == pytest.approx(0.8 * 0.7)
+
+
+def test_truth_quality_replaces_confagg_only_where_a_trainer_supplies_it() -> None:
+    truth = RewardWeights(quality="truth")
+    assert quality_signal(RewardWeights(), 0.9, 0.4) == 0.9  # the default reads ConfAgg whatever comes
+    assert quality_signal(truth, 0.9, 0.4) == 0.4
+    assert quality_signal(truth, 0.9, None) == 0.9  # the daemon and replay: no truth
+    config = ControllerConfig(factors=("motion",), contribution="none", min_dwell_s=0.0, reward=truth,
+                              learning=Learning(init="zero"))
+    controller = Controller(config, ActionSpace((Slot("cam", "rgb", ((640, 360),), (1.0,)),), "product"),
+                            StateSpace(config.factors, Thresholds()))
+    trained = controller.step(Observation(t=0.0, n_percepts=1, conf_agg=0.9, truth_quality=0.4))
+    assert trained.terms["conf_level"] == pytest.approx(0.8 * 0.4)
+    assert trained.terms["conf_agg"] == 0.9 and trained.terms["truth_quality"] == 0.4
+    daemon = controller.step(Observation(t=1.0, n_percepts=1, conf_agg=0.9))
+    assert daemon.terms["conf_level"] == pytest.approx(0.8 * 0.9) and "truth_quality" not in daemon.terms
 
 
 def test_reward_terms_do_not_shadow_log_record_keys() -> None:

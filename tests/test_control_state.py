@@ -183,6 +183,14 @@ def test_window_averages_prunes_and_keeps_last_scene_values() -> None:
     assert later.load == pytest.approx(0.9)
 
 
+def test_window_averages_the_truth_quality_only_of_samples_that_carry_it() -> None:
+    window = Window(window_s=1.0, latency_budget_s=0.2)
+    window.add(Sample(t=0.2, conf_agg=0.9, latency_s=0.05, truth_quality=0.5))
+    window.add(Sample(t=0.9, conf_agg=0.9, latency_s=0.05))
+    assert window.observe(1.0).truth_quality == pytest.approx(0.5)
+    assert window.observe(2.5).truth_quality is None  # the daemon's windows: no truth
+
+
 def test_auto_exposure_is_undone_for_illumination() -> None:
     # 5 Hz in a dark room: 200 ms at gain 3 gives a frame as bright as daylight at 1/30 s
     assert scene_light(0.42, {"exposure_s": 0.2, "gain": 3.0}) == pytest.approx(0.42 / 18)

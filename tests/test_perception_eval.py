@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from respecd.cli import main as cli_main
-from respecd.lab.detector.metrics import ImageResult, average_precision, mean_ap
+from respecd.lab.detector.metrics import ImageResult, average_precision, detection_f1, mean_ap
+from respecd.messages import conf_agg
 from respecd.perception import checkpoint
 from respecd.perception.config import ModelSpec
 from respecd.perception.model import FusionNet
@@ -44,6 +45,20 @@ def test_ignored_ground_truth_is_neither_hit_nor_miss() -> None:
     assert average_precision(only_first, 0.5) == pytest.approx(1.0)  # the hidden person is not a miss
     both = [ImageResult(GT.copy(), np.array([0.9, 0.95]), GT, ignore)]
     assert average_precision(both, 0.5) == pytest.approx(1.0)  # nor is a detection on it a false positive
+
+
+def test_a_missed_person_lowers_the_f1_but_not_the_confidence() -> None:
+    """What the truth quality of training is for: ConfAgg (mean of the top scores) is the same
+    whether the detector found one person of two or both, F1 is not."""
+    one = ImageResult(GT[:1].copy(), np.array([0.9]), GT)
+    both = ImageResult(GT.copy(), np.array([0.9, 0.9]), GT)
+    assert conf_agg(one.pred_scores.tolist()) == conf_agg(both.pred_scores.tolist())
+    assert detection_f1(both) == 1.0 and detection_f1(one) == pytest.approx(2 / 3)
+    extra = ImageResult(np.vstack([GT, [[200, 200, 240, 260]]]), np.array([0.9, 0.9, 0.3]), GT)
+    assert detection_f1(extra) == pytest.approx(4 / 5)  # a false box costs as a miss does
+    assert detection_f1(ImageResult(np.zeros((0, 4)), np.zeros(0), np.zeros((0, 4)))) == 1.0  # nothing, nothing
+    ignored = ImageResult(GT.copy(), np.array([0.9, 0.9]), GT, np.array([False, True]))
+    assert detection_f1(ignored) == 1.0  # a box on a hidden person counts neither way
 
 
 def _responsive(net: FusionNet) -> FusionNet:

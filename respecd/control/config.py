@@ -113,6 +113,14 @@ class RewardWeights(StrictModel):
         "frame it gets, and a stale frame of a modality it barely credits still costs accuracy on moving people "
         "(docs/CONTROLLER.md, Reward).",
     )
+    quality: Literal["confagg", "truth"] = Field(
+        "confagg",
+        description="What the quality terms (alpha, confidence_level) read. confagg: the detector's own ConfAgg, the "
+        "paper's and all a robot has. truth: training in the simulator only - the F1 at IoU 0.5 of the boxes the "
+        "daemon would deliver against the simulator's ground truth, which counts the people the detector missed "
+        "(ConfAgg, the mean of the top scores, cannot: docs/RESULTS.md, What limits the agent). Where no truth comes "
+        "(the daemon, replay) ConfAgg is read.",
+    )
     confidence_level: float = Field(
         0.8,
         ge=0,

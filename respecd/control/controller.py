@@ -25,6 +25,7 @@ from respecd.control.reward import (
     DETECTOR_MODALITIES,
     compute_power,
     per_sensor_rewards,
+    quality_signal,
     reward_terms,
     sensing_delay,
     sensor_costs,
@@ -142,8 +143,11 @@ class Controller:
             delay = sensing_delay(running, obs.contributions)
         motion = motion_bin(obs, self.states.thresholds)
         bandwidth = sensing_bandwidth(running, obs.radar_points)
-        terms = reward_terms(self.config.reward, self._prev_conf, obs.conf_agg, power, obs.latency_s, self._switched,
+        quality = quality_signal(self.config.reward, obs.conf_agg, obs.truth_quality)
+        terms = reward_terms(self.config.reward, self._prev_conf, quality, power, obs.latency_s, self._switched,
                              delay, motion, bandwidth)
+        if self.config.reward.quality == "truth" and obs.truth_quality is not None:  # the log line keeps both
+            terms["truth_quality"], terms["conf_agg"] = quality, obs.conf_agg
         reward = terms["reward"]
         if self.policy == "learn" and self.table is not None and self._prev_state is not None:
             factored = isinstance(self.table, FactoredQTable)
@@ -159,7 +163,7 @@ class Controller:
         if self._switched:
             self._last_switch_t = obs.t
         self.position = target
-        self._prev_state, self._prev_action, self._prev_conf = state, action, obs.conf_agg
+        self._prev_state, self._prev_action, self._prev_conf = state, action, quality
         q_values = tuple(self.table.q[state].tolist()) if self.table is not None else ()
         return Decision(
             t=obs.t,

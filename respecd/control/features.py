@@ -36,6 +36,7 @@ class Sample:
     radar_points: float | None = None
     sync_level: int | None = None
     contributions: dict[str, float] | None = None
+    truth_quality: float | None = None  # training only: F1 of the boxes against the simulator's ground truth
 
 
 class FeatureExtractor:
@@ -163,6 +164,7 @@ class Window:
             busy=busy,
             sync=_mean(levels) if levels else 0.0,  # type: ignore[arg-type]
             conf_agg=_mean([x.conf_agg for x in s]) or 0.0,
+            truth_quality=_mean([x.truth_quality for x in s if x.truth_quality is not None]),
             contributions=self._contributions(s),
             power_w=power_w,
         )

@@ -91,6 +91,15 @@ def slowest_delay(configs: Iterable[SensorConfig], inputs: Iterable[str]) -> flo
     return max((0.5 / c.rate_hz for c in configs if c.enabled and c.rate_hz > 0 and c.modality in read), default=0.0)
 
 
+def quality_signal(weights: RewardWeights, conf_agg: float, truth_quality: float | None) -> float:
+    """What the quality terms read: ConfAgg, or with ``quality: truth`` the window's F1 against the
+    simulator's ground truth where a trainer supplies it. ConfAgg is the mean of the top scores, so a
+    person the detector misses leaves it unchanged: it cannot tell the agent what a smaller RGB frame costs."""
+    if weights.quality == "truth" and truth_quality is not None:
+        return truth_quality
+    return conf_agg
+
+
 def reward_terms(
     weights: RewardWeights,
     conf_prev: float | None,

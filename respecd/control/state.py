@@ -59,6 +59,7 @@ class Observation:
     busy: float = 0.0  # detector seconds per second (sum of inference latencies / window)
     sync: float = 0.0  # mean synchronizer health, good=0 fair=1 poor=2
     conf_agg: float = 0.0  # mean ConfAgg
+    truth_quality: float | None = None  # training only: mean F1 against the simulator's ground truth
     contributions: Mapping[str, float] | None = None  # mean scene score per modality
     power_w: float | None = None  # measured board power (rails); None: use the power model
 

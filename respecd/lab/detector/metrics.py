@@ -70,6 +70,17 @@ def _match(image: ImageResult, threshold: float) -> tuple[np.ndarray, np.ndarray
     return image.pred_scores[order], tp, keep
 
 
+def detection_f1(image: ImageResult, threshold: float = 0.5) -> float:
+    """F1 of one image's boxes at IoU ``threshold``, matched as AP matches them (a box on an ignored
+    person counts neither way); 1.0 when there is nothing to find and nothing was found. A per-image
+    quality that, unlike the detector's confidence, falls when a person is missed."""
+    _, tp, keep, _ = _greedy(image, threshold)
+    hits = int(tp.sum())
+    false = int((~tp & keep).sum())
+    missed = int((~image.gt_ignore).sum()) - hits
+    return 1.0 if hits + false + missed == 0 else 2 * hits / (2 * hits + false + missed)
+
+
 FALSE_BOX_KINDS = ("second", "misplaced", "clutter")
 
 

@@ -51,7 +51,7 @@ from respecd.control.controller import Controller
 from respecd.control.features import Sample
 from respecd.control.loop import ControlLoop
 from respecd.control.probe import SystemSample
-from respecd.lab.detector.metrics import ImageResult
+from respecd.lab.detector.metrics import ImageResult, detection_f1
 from respecd.lab.experiment.accelerator import Accelerator, Inference, WindowLoad
 from respecd.lab.experiment.latency import Latency
 from respecd.lab.experiment.outcomes import Evaluator, Outcome
@@ -333,10 +333,12 @@ class _Feeder:
         contributions = run.scores.update(delivered.bundle.t, out.contributions) if attributed else None
         imu = self.rollout.evaluator.imu(run.world, t)
         latency = self.accelerator.mean_latency_s() or delivered.service_s
-        run.loop.add(Sample(run.offset + t, out.conf_agg, latency, out.luminance, out.motion,
-                            float(np.linalg.norm(imu[3:6])), out.radar_points, 0, contributions))
         boxes, ignore = self.rollout.evaluator.truth(run.world, t, delivered.bundle.resolution)
-        return ImageResult(out.boxes, out.scores, boxes, ignore), out.radar_points
+        image = ImageResult(out.boxes, out.scores, boxes, ignore)
+        run.loop.add(Sample(run.offset + t, out.conf_agg, latency, out.luminance, out.motion,
+                            float(np.linalg.norm(imu[3:6])), out.radar_points, 0, contributions,
+                            detection_f1(image)))
+        return image, out.radar_points
 
     def _decided(self, decision: Decision) -> None:
         assert self._window is not None, "a decision before any sample"
