@@ -353,6 +353,22 @@ def test_rollout_charges_the_detector_it_runs(profile_path: Path) -> None:
         assert controller.states.names(record.decision.state)["load"] == ("low", "medium", "high")[expected]
 
 
+@pytest.mark.slow
+def test_training_with_truth_quality_rewards_the_f1_of_the_scored_instants(profile_path: Path, tmp_path: Path) -> None:
+    doc = yaml.safe_load(profile_path.read_text())
+    doc["controller"]["reward"] = {"quality": "truth"}
+    (tmp_path / "truth.yaml").write_text(yaml.safe_dump(doc))
+    profile = load_profile(tmp_path / "truth.yaml")
+    rollout = Rollout(profile, make_evaluator(load_detector(profile, random_init=True), profile, use_cache=False),
+                      {(640, 360): lat.Latency(0.02, 0.05)})
+    controller = controller_for(profile, "static")
+    records = rollout.run(controller, [Piece("good-light-moving", 0, 3.0)])
+    for record in records[1:]:
+        terms = record.decision.terms
+        assert 0.0 <= terms["truth_quality"] <= 1.0 and "conf_agg" in terms
+        assert terms["conf_level"] == pytest.approx(profile.controller.reward.confidence_level * terms["truth_quality"])
+
+
 def _run(met: list[bool], rl_map: float, compute_cut: float) -> dict:
     goals = [{"goal": "static is the accuracy ceiling", "met": False}]
     goals += [{"goal": f"criterion {i}", "met": m} for i, m in enumerate(met)]
