@@ -208,6 +208,18 @@ async def test_exploit_with_an_empty_state_dir_uses_the_shipped_table(tmp_path: 
     assert not list(tmp_path.glob("*.npz"))  # exploit never writes a table
 
 
+async def test_a_truth_quality_profile_says_the_daemon_learns_from_confagg(tmp_path: Path) -> None:
+    from structlog.testing import capture_logs
+
+    rig = Rig(tmp_path, "learn")
+    reward = rig.stage.config.reward.model_copy(update={"quality": "truth"})
+    rig.stage.config = rig.stage.config.model_copy(update={"reward": reward})
+    with capture_logs() as logs:
+        await rig.stage.prepare()
+    said = [e for e in logs if e["event"] == "reward_quality_without_truth"]
+    assert len(said) == 1 and said[0]["log_level"] == "warning" and said[0]["reads"] == "conf_agg"
+
+
 @pytest.mark.slow
 async def test_a_state_directory_that_fails_is_one_error_a_status_flag_and_a_summary(
         tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -204,6 +204,9 @@ class ControllerStage:
             await asyncio.to_thread(probe.read)  # prime the CPU counters
             self.loop.probe = ThreadedProbe(probe)
         self._prepared = True
+        if self.config.policy == "learn" and self.config.reward.quality == "truth":
+            log.warning("reward_quality_without_truth", reads="conf_agg",
+                        note="reward.quality: truth is for training in the simulator; no ground truth comes here")
         log.info("controller_ready", policy=self.config.policy, states=self.controller.states.size,
                  actions=self.controller.space.n, table_columns=self.controller.space.columns,
                  table=str(self.table_path))
