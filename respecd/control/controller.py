@@ -146,8 +146,8 @@ class Controller:
         quality = quality_signal(self.config.reward, obs.conf_agg, obs.truth_quality)
         terms = reward_terms(self.config.reward, self._prev_conf, quality, power, obs.latency_s, self._switched,
                              delay, motion, bandwidth)
-        if self.config.reward.quality == "truth" and obs.truth_quality is not None:  # the log line keeps both
-            terms["truth_quality"], terms["conf_agg"] = quality, obs.conf_agg
+        if obs.truth_quality is not None:  # a trainer's: the log line keeps it beside the detector's own
+            terms["truth_quality"], terms["conf_agg"] = obs.truth_quality, obs.conf_agg
         reward = terms["reward"]
         if self.policy == "learn" and self.table is not None and self._prev_state is not None:
             factored = isinstance(self.table, FactoredQTable)

@@ -275,6 +275,7 @@ class _Feeder:
         self.on_window = on_window
         self.records: list[WindowRecord] = []
         self.scores = rollout.evaluator.detector.scene_scores()
+        self._reads_truth = loop.controller.config.reward.quality == "truth"  # else no F1 is worth computing
         self._window: tuple[str, Position, dict[str, SensorConfig], list[ImageResult], float] | None = None
         loop.on_window.append(accelerator.request_attribution)
         loop.on_decision.append(self._decided)
@@ -337,7 +338,7 @@ class _Feeder:
         image = ImageResult(out.boxes, out.scores, boxes, ignore)
         run.loop.add(Sample(run.offset + t, out.conf_agg, latency, out.luminance, out.motion,
                             float(np.linalg.norm(imu[3:6])), out.radar_points, 0, contributions,
-                            detection_f1(image)))
+                            detection_f1(image) if self._reads_truth else None))
         return image, out.radar_points
 
     def _decided(self, decision: Decision) -> None:
