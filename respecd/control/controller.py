@@ -229,7 +229,7 @@ class Controller:
                      for cell, size in zip(self.table.cells(action), self.table.blocks, strict=True)]
             action = self.table.encode(cells)
         elif epsilon > 0.0 and rng.random() < epsilon:
-            action = int(rng.integers(self.space.n))
+            return self._random_action()
         return action, self.space.apply(self.position, action)
 
     def _exploit(self, state: int) -> tuple[int, Position]:
@@ -237,9 +237,14 @@ class Controller:
         assert self.table is not None
         epsilon = self.config.learning.epsilon_exploit
         if epsilon > 0.0 and self.table.rng.random() < epsilon:
-            action = int(self.table.rng.integers(self.space.n))
-            return action, self.space.apply(self.position, action)
+            return self._random_action()
         return self._best_learned(state)
+
+    def _random_action(self) -> tuple[int, Position]:
+        """Any action of the space, drawn with the table's generator (exploration stays seeded)."""
+        assert self.table is not None
+        action = int(self.table.rng.integers(self.space.n))
+        return action, self.space.apply(self.position, action)
 
     def _best_learned(self, state: int) -> tuple[int, Position]:
         """Best learned action; in a state never learned in (fewer than ``exploit_min_visits``
