@@ -17,6 +17,7 @@ EXPERIMENTS: dict[str, str] = {
     "choose": "respecd.lab.experiment.choose",
     "heuristic": "respecd.lab.experiment.heuristic",
     "platforms": "respecd.lab.experiment.platforms",
+    "frontier": "respecd.lab.experiment.frontier",
 }
 
 
