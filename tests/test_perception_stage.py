@@ -252,3 +252,45 @@ def test_an_input_prepared_ahead_is_used_only_for_the_very_frames_it_was_made_fr
             assert preparer.take(taken) is None
     finally:
         preparer.shutdown()
+
+
+class _GridSpy(FusionDetector):
+    """Records the grid of every input it prepares (in whichever thread)."""
+
+    def __init__(self, *args, **kwargs) -> None:  # noqa: ANN002, ANN003
+        super().__init__(*args, **kwargs)
+        self.grids: list[tuple[int, int]] = []
+
+    def prepare(self, frames, rgb_size=None):  # noqa: ANN001, ANN201
+        aligned = super().prepare(frames, rgb_size)
+        self.grids.append(aligned.size)
+        return aligned
+
+
+def test_a_bundle_without_rgb_is_detected_on_the_grid_of_the_bundles_before_it() -> None:
+    """The preparer's thread and the detector's both run the aligner; that the preparer aligned the
+    next bundle's RGB frame first must not move an earlier RGB-less bundle onto that frame's grid
+    (one log replayed twice at --speed max gave two timelines)."""
+    from respecd.perception.ahead import InputPreparer
+
+    config = PerceptionConfig(model=TINY, score_threshold=0.0)
+    detector = _GridSpy(FusionNet(TINY), config)
+    stage = PerceptionStage(config, calibration=None, clock=ManualClock(), detector=detector)
+    stage._preparer = preparer = InputPreparer(detector.prepare, stage._inputs)
+    stage._rgb_grid = first = detector.first_rgb_size()
+    no_rgb = {"thermal": _bundle(0.1, 1).frames["thermal"]}
+    later = dict(_bundle(0.2, 2).frames)  # RGB at 160x96
+    assert first != (160, 96)
+    try:
+        preparer.start(later, stage._grid_for(later))
+        preparer._ahead.input.result()  # the race's bad order: the later RGB frame aligned first
+        grid = stage._rgb_grid = stage._grid_for(no_rgb)
+        stage._infer(no_rgb, False, None, grid)
+        assert detector.grids == [(160, 96), first]
+        grid = stage._rgb_grid = stage._grid_for(later)
+        stage._infer(later, False, preparer.take(later), grid)
+        grid = stage._rgb_grid = stage._grid_for(no_rgb)
+        stage._infer(no_rgb, False, None, grid)
+        assert detector.grids[-1] == (160, 96)  # after an RGB frame, its size
+    finally:
+        preparer.shutdown()

@@ -198,7 +198,7 @@ def test_a_replay_prepares_the_next_bundle_while_the_detector_runs(
               rgb_size: Any = None) -> Any:
         ran.append((which(frames), aligned))
         if aligned is not None:
-            here = real_prepare(self, frames)
+            here = real_prepare(self, frames, rgb_size)  # the grid the stage gives a bundle without RGB
             same = (here.size == aligned.size and here.tensor.dtype == aligned.tensor.dtype
                     and here.tensor.shape == aligned.tensor.shape and here.tensor.tobytes() == aligned.tensor.tobytes()
                     and here.presence.tobytes() == aligned.presence.tobytes())

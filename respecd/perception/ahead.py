@@ -20,7 +20,7 @@ from typing import Any
 
 from respecd.priority import lower_thread_priority
 
-Prepare = Callable[[dict[Any, Any]], Any]
+Prepare = Callable[[dict[Any, Any], tuple[int, int] | None], Any]
 
 
 def core_beside(threads: int) -> bool:
@@ -47,9 +47,11 @@ class InputPreparer:
                                             initializer=lower_thread_priority)
         self._ahead: _Ahead | None = None
 
-    def start(self, frames: dict[Any, Any]) -> None:
-        """Prepare ``frames``' input in the worker (replacing whatever was prepared before)."""
-        self._ahead = _Ahead(self._detector_frames(frames), self._executor.submit(_quietly, self._prepare, frames))
+    def start(self, frames: dict[Any, Any], rgb_size: tuple[int, int] | None = None) -> None:
+        """Prepare ``frames``' input in the worker (replacing whatever was prepared before); ``rgb_size``:
+        the grid if they hold no RGB frame (``FusionDetector.prepare``)."""
+        job = self._executor.submit(_quietly, self._prepare, frames, rgb_size)
+        self._ahead = _Ahead(self._detector_frames(frames), job)
 
     def take(self, frames: dict[Any, Any]) -> Future[Any] | None:
         """The input prepared ahead for exactly these frames (the same frame objects for every
@@ -70,8 +72,9 @@ class InputPreparer:
         return {m: f for m, f in frames.items() if m in self._inputs}
 
 
-def _quietly(prepare: Prepare, frames: dict[Any, Any]) -> Any:
-    """``prepare(frames)``, None on an error left for the detector to meet (as it would without preparing ahead)."""
+def _quietly(prepare: Prepare, frames: dict[Any, Any], rgb_size: tuple[int, int] | None) -> Any:
+    """``prepare(frames, rgb_size)``, None on an error left for the detector to meet (as it would without
+    preparing ahead)."""
     with contextlib.suppress(Exception):
-        return prepare(frames)
+        return prepare(frames, rgb_size)
     return None

@@ -59,15 +59,16 @@ class Aligner:
         self.aux = config.model.aux_modalities
         self.calibration = calibration or {}
         self.plane_depth_m = config.plane_depth_m
-        self.rgb_size = self._first_rgb_size()
+        self.rgb_size = self.first_rgb_size()
 
-    def _first_rgb_size(self) -> tuple[int, int]:
+    def first_rgb_size(self) -> tuple[int, int]:
+        """The canvas before any RGB frame: the calibrated RGB size, else ``DEFAULT_RGB_SIZE``."""
         cal = self.calibration.get("rgb")
         return (cal.intrinsics.width, cal.intrinsics.height) if cal and cal.intrinsics else DEFAULT_RGB_SIZE
 
     def forget_rgb_size(self) -> None:
         """Back to the canvas before any RGB frame (a new session on a shared detector)."""
-        self.rgb_size = self._first_rgb_size()
+        self.rgb_size = self.first_rgb_size()
 
     def align(self, frames: dict[str, Frame], rgb_size: tuple[int, int] | None = None) -> AlignedInput:
         """The input for ``frames``, on the RGB frame's pixel grid: detections come out in the RGB camera's

@@ -117,6 +117,10 @@ class FusionDetector:
         self.reset_scene_scores()
         self.aligner.forget_rgb_size()
 
+    def first_rgb_size(self) -> tuple[int, int]:
+        """The grid of a bundle without RGB before any RGB frame (``Aligner.first_rgb_size``)."""
+        return self.aligner.first_rgb_size()
+
     def prepare(self, frames: dict[str, Frame], rgb_size: tuple[int, int] | None = None) -> AlignedInput:
         """The network's input for ``frames`` (decoded, aligned, normalised): all ``infer`` does before
         the network; without an RGB frame, on ``rgb_size`` or the last RGB frame's grid (``Aligner.align``).

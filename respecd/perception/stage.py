@@ -95,6 +95,11 @@ def calibration_from_profile(profile: Profile) -> dict[str, Calibration | None]:
     return calibration
 
 
+def _on_grid(frames: Mapping[Any, Any], grid: tuple[int, int] | None) -> dict[str, tuple[int, int]]:
+    """``infer``'s grid argument for frames without an RGB frame (none with one, or without a grid)."""
+    return {} if grid is None or "rgb" in frames else {"rgb_size": grid}
+
+
 class PerceptionStage:
     """Runs the fusion detector on each bundle.
 
@@ -135,6 +140,7 @@ class PerceptionStage:
         self._pending: asyncio.Future[None] | None = None  # done once the bundle taken has its percept out
         self._finishing = False
         self._preparer: InputPreparer | None = None  # prepares the next bundle's input (lockstep)
+        self._rgb_grid: tuple[int, int] | None = None  # with a preparer: the newest RGB size, in bundle order
 
     def finish(self) -> asyncio.Future[None] | None:
         """Take no new bundle; the future is done when the one being worked on has its percept
@@ -177,6 +183,7 @@ class PerceptionStage:
         prepare = getattr(self._detector, "prepare", None)
         if self.latency_model is not None and prepare is not None and core_beside(self.config.torch_threads):
             self._preparer = InputPreparer(prepare, self._inputs)
+            self._rgb_grid = self._detector.first_rgb_size()
         try:
             while True:
                 if self.latency_model is not None:
@@ -221,7 +228,8 @@ class PerceptionStage:
         the clock); waiting for its result is counted."""
         assert self._executor is not None
         prepared = self._preparer.take(frames) if self._preparer is not None else None
-        job = self._executor.submit(self._infer, frames, attribute, prepared)
+        grid = self._rgb_grid = self._grid_for(frames)
+        job = self._executor.submit(self._infer, frames, attribute, prepared, grid)
         try:
             await self.clock.sleep_until(due)
             if job.done():
@@ -231,12 +239,13 @@ class PerceptionStage:
         finally:
             job.cancel()  # a stop while it runs: it finishes in its thread, nobody waits for it
 
-    def _infer_intact(self, frames: dict[Any, Any], attribute: bool) -> Percept:
+    def _infer_intact(self, frames: dict[Any, Any], attribute: bool, grid: tuple[int, int] | None = None) -> Percept:
         """The detector on ``frames``; a logged image that does not decode is left out, as a frame
         that never came (the detector runs on the other sensors), and said: the first time per
-        sensor, then every 100th. Before, it took the whole perception stage down for its restart."""
+        sensor, then every 100th. Before, it took the whole perception stage down for its restart.
+        ``grid``: the RGB size to detect on if no RGB frame is left (``_grid_for``)."""
         try:
-            return self._detector.infer(frames, attribute)
+            return self._detector.infer(frames, attribute, **_on_grid(frames, grid))
         except UndecodableImageError:
             intact: dict[Any, Any] = {}
             for name, frame in frames.items():
@@ -249,7 +258,7 @@ class PerceptionStage:
                                     action="inferred without it")
                     continue
                 intact[name] = frame
-            return self._detector.infer(intact, attribute)
+            return self._detector.infer(intact, attribute, **_on_grid(intact, grid))
 
     def _prepare_next(self, bundles: DropOldestQueue[Bundle]) -> None:
         """Prepare, in the preparer's thread, the input of the bundle ``run`` takes next. Called
@@ -259,15 +268,27 @@ class PerceptionStage:
             return
         bundle = next((b for b in bundles.pending() if self._inputs_of(b) != self._last_inputs), None)
         if bundle is not None:
-            self._preparer.start(dict(bundle.frames))
+            self._preparer.start(dict(bundle.frames), self._grid_for(bundle.frames))
 
-    def _infer(self, frames: dict[Any, Any], attribute: bool, prepared: Future[Any] | None) -> Percept:
+    def _grid_for(self, frames: Mapping[Any, Any]) -> tuple[int, int] | None:
+        """The grid of the bundle taken next: its RGB frame's size, else the newest one taken before it
+        (at first the detector's calibrated size). Kept here in bundle order, not by the aligner, which
+        the preparer's thread and the detector's both run: which of them aligned a later RGB frame first
+        must not decide where a bundle without one is detected. None without a preparer."""
+        rgb = frames.get("rgb")
+        if self._preparer is None or rgb is None:
+            return self._rgb_grid
+        height, width = rgb.shape[:2]
+        return (width, height)
+
+    def _infer(self, frames: dict[Any, Any], attribute: bool, prepared: Future[Any] | None,
+               grid: tuple[int, int] | None) -> Percept:
         """The detector on ``frames`` (its thread), with the input prepared ahead when it is there:
         waited for if the preparer is on it, prepared here if it has not started or failed."""
         aligned = None if prepared is None or prepared.cancel() else prepared.result()
         if aligned is None:
-            return self._infer_intact(frames, attribute)
-        return self._detector.infer(frames, attribute, aligned)
+            return self._infer_intact(frames, attribute, grid)
+        return self._detector.infer(frames, attribute, aligned, **_on_grid(frames, grid))
 
     async def _shutdown(self) -> None:
         """Drop a pending infer, let a running one finish in its thread without blocking the loop."""
