@@ -169,7 +169,7 @@ def _check(args: argparse.Namespace) -> None:
 def _prepare_sim(args: argparse.Namespace, profile: Profile, detector: Any) -> tuple:
     """The simulator as the source: held-out world seeds, one piece per scenario and world set."""
     from respecd.lab.experiment import latency as lat
-    from respecd.lab.experiment.compare import world_sets
+    from respecd.lab.experiment.compare import world_seed_range, world_sets
     from respecd.lab.experiment.setup import make_evaluator
     from respecd.lab.experiment.training import EVAL_SEED
 
@@ -179,7 +179,7 @@ def _prepare_sim(args: argparse.Namespace, profile: Profile, detector: Any) -> t
     sets = world_sets(profile.simulation.scenarios, seed, args.worlds, duration)
     frames_for = lat.sim_frames(evaluator.world(sets[0][0], profile.simulation), evaluator.inputs)
     extra = {"duration_s_per_scenario": duration, "world_seed": seed, "worlds": args.worlds,
-             "world_seeds": [seed, seed + args.worlds * len(sets[0]) - 1]}
+             "world_seeds": world_seed_range(seed, args.worlds, profile.simulation.scenarios)}
     return evaluator, sets, frames_for, extra
 
 

@@ -82,6 +82,11 @@ def world_sets(scenarios: Sequence[str], first_seed: int, count: int, duration_s
             for k in range(count)]
 
 
+def world_seed_range(first_seed: int, count: int, scenarios: Sequence[str]) -> list[int]:
+    """The first and last world seed of ``world_sets(scenarios, first_seed, count, ...)``."""
+    return [first_seed, first_seed + count * len(scenarios) - 1]
+
+
 def stabilized(runs: Sequence[Sequence[WindowRecord]]) -> Any:
     """The configuration active longest over the second halves of the runs (one per world set)."""
     tails = [r for records in runs for r in (records[len(records) // 2:] or records)]

@@ -138,12 +138,9 @@ def run(profile_ref: str, seed: int, worlds: int, duration_s: float, latency: st
     from multiprocessing import get_context
 
     from respecd.config import load_profile
-    from respecd.lab.experiment import platforms
-    from respecd.lab.experiment.rollout import controller_for
-    from respecd.lab.experiment.setup import rgb_resolutions
 
     profile = load_profile(profile_ref)
-    table = platforms.resolve(latency, rgb_resolutions(controller_for(profile, "static")))  # a bad name fails here
+    identity = _identity(profile, seed, worlds, duration_s, latency)  # a bad table fails here
     names = list(family(profile.controller.actions))
     todo = [(profile_ref, seed, worlds, duration_s, latency, cache_dir, random_detector, n) for n in names]
     cells: dict[str, dict[str, Cell]] = {}
@@ -153,8 +150,7 @@ def run(profile_ref: str, seed: int, worlds: int, duration_s: float, latency: st
                 cells.setdefault(scenario, {})[name] = cell
             print(f"{name}: " + " ".join(f"{s} {c.map50:.3f}/{c.load:.3f}" for s, c in per_scenario.items()),
                   flush=True)
-    n = len(profile.simulation.scenarios)
-    return {"latency_table": table.label(), "world_seeds": [seed, seed + worlds * n - 1], "duration_s": duration_s,
+    return {**identity,
             "configurations": {s: {name: {"map50": round(c.map50, 4), "accelerator_load": round(c.load, 4)}
                                    for name, c in row.items()} for s, row in cells.items()},
             "frontier": descend(cells), "chosen_elsewhere": [point(cells, c) for c in choices or []]}
@@ -163,14 +159,13 @@ def run(profile_ref: str, seed: int, worlds: int, duration_s: float, latency: st
 def _configuration(job: tuple[Any, ...]) -> dict[str, Cell]:
     """One configuration held by ``static`` on every world set (a worker process): a cell per scenario."""
     from respecd.config import load_profile
-    from respecd.lab.experiment import platforms
     from respecd.lab.experiment.compare import world_sets
     from respecd.lab.experiment.rollout import Rollout, controller_for
-    from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
+    from respecd.lab.experiment.setup import latency_table, load_detector, make_evaluator
 
     profile_ref, seed, worlds, duration_s, latency, cache_dir, random_detector, name = job
     base = load_profile(profile_ref)
-    table = platforms.resolve(latency, rgb_resolutions(controller_for(base, "static")))
+    table = latency_table(base, latency)
     actions = base.controller.actions
     pinned = actions.model_copy(update=family(actions)[name])
     profile = base.model_copy(update={"controller": base.controller.model_copy(update={"actions": pinned})})
@@ -230,18 +225,22 @@ def main(a: argparse.Namespace) -> int:
     return 0
 
 
+def _identity(profile: Any, seed: int, worlds: int, duration_s: float, latency: str) -> dict[str, Any]:
+    """Which table and worlds a run is of: the keys it shares with a ``bench scenarios`` JSON."""
+    from respecd.lab.experiment.compare import world_seed_range
+    from respecd.lab.experiment.setup import latency_table
+
+    return {"latency_table": latency_table(profile, latency).label(),
+            "world_seeds": world_seed_range(seed, worlds, profile.simulation.scenarios), "duration_s": duration_s}
+
+
 def _worlds(a: argparse.Namespace) -> dict[str, Any]:
     """What a bench JSON must share with this run to be compared: the table, the worlds, their length."""
     from respecd.config import load_profile
-    from respecd.lab.experiment import platforms
-    from respecd.lab.experiment.rollout import controller_for
-    from respecd.lab.experiment.setup import rgb_resolutions
 
-    profile = load_profile(a.profile)
-    table = platforms.resolve(a.latency, rgb_resolutions(controller_for(profile, "static")))
-    n = len(profile.simulation.scenarios)
-    return {"latency_table": table.label(), "world_seeds": [a.seed, a.seed + a.worlds * n - 1],
-            "duration_s_per_scenario": a.duration}
+    identity = _identity(load_profile(a.profile), a.seed, a.worlds, a.duration, a.latency)
+    identity["duration_s_per_scenario"] = identity.pop("duration_s")
+    return identity
 
 
 def _read_bench(path: Path, expected: dict[str, Any]) -> dict[str, Any]:

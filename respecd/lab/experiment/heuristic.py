@@ -78,12 +78,11 @@ def run_grid(profile_ref: str, seed: int, worlds: int, duration_s: float, latenc
     from multiprocessing import get_context
 
     from respecd.config import load_profile
-    from respecd.lab.experiment import platforms
-    from respecd.lab.experiment.rollout import controller_for
-    from respecd.lab.experiment.setup import rgb_resolutions
+    from respecd.lab.experiment.compare import world_seed_range
+    from respecd.lab.experiment.setup import latency_table
 
     profile = load_profile(profile_ref)
-    table = platforms.resolve(latency, rgb_resolutions(controller_for(profile, "static")))  # a bad name fails here
+    table = latency_table(profile, latency)  # a bad name fails here
     todo = [(profile_ref, seed, worlds, duration_s, latency, cache_dir, random_detector, rules)
             for rules in points or grid()]
     out = []
@@ -92,8 +91,7 @@ def run_grid(profile_ref: str, seed: int, worlds: int, duration_s: float, latenc
             out.append(figures)
             print(json.dumps(figures), flush=True)
     chosen = choose(out)
-    n = len(profile.simulation.scenarios)
-    return {"latency_table": table.label(), "world_seeds": [seed, seed + worlds * n - 1],
+    return {"latency_table": table.label(), "world_seeds": world_seed_range(seed, worlds, profile.simulation.scenarios),
             "duration_s": duration_s, "map_tolerance": MAP_TOLERANCE, "points": out, "chosen": chosen["name"],
             "mean_load": float(np.mean([p["accelerator_load"] for p in out]))}
 
@@ -101,14 +99,13 @@ def run_grid(profile_ref: str, seed: int, worlds: int, duration_s: float, latenc
 def _point(job: tuple[Any, ...]) -> dict[str, Any]:
     """One grid point: the heuristic alone with ``rules`` on every world set (a worker process)."""
     from respecd.config import load_profile
-    from respecd.lab.experiment import platforms
     from respecd.lab.experiment.compare import figures, world_sets
     from respecd.lab.experiment.rollout import Rollout, controller_for
-    from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
+    from respecd.lab.experiment.setup import latency_table, load_detector, make_evaluator
 
     profile_ref, seed, worlds, duration_s, latency, cache_dir, random_detector, rules = job
     profile = load_profile(profile_ref)
-    table = platforms.resolve(latency, rgb_resolutions(controller_for(profile, "static")))
+    table = latency_table(profile, latency)
     evaluator = make_evaluator(load_detector(profile, random_init=random_detector), profile, True, cache_dir)
     rollout = Rollout(profile, evaluator, table.latency, 1.0, table.accelerator_w)
     try:

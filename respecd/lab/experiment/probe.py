@@ -42,17 +42,16 @@ def probe(profile_ref: str | Path, seed: int, worlds: int, duration_s: float, la
     untrained net, for tests; ``score_threshold``: the daemon's box threshold in place of the profile's, to
     see what it hides — the benchmark scores only the boxes the daemon delivers)."""
     from respecd.config import load_profile
-    from respecd.lab.experiment import platforms
     from respecd.lab.experiment.compare import world_sets
     from respecd.lab.experiment.rollout import Rollout, controller_for
-    from respecd.lab.experiment.setup import load_detector, make_evaluator, rgb_resolutions
+    from respecd.lab.experiment.setup import latency_table, load_detector, make_evaluator
 
     base = load_profile(profile_ref)
     if score_threshold is not None:
         perception = base.perception.model_copy(update={"score_threshold": score_threshold})
         base = base.model_copy(update={"perception": perception})
     evaluator = make_evaluator(load_detector(base, random_init=random_detector), base, True, cache_dir)
-    pinned = platforms.resolve(latency, rgb_resolutions(controller_for(base, "static"))).latency
+    pinned = latency_table(base, latency).latency
     actions = base.controller.actions
     pieces_sets = world_sets(base.simulation.scenarios, seed, worlds, duration_s)
     results: dict[str, dict[str, dict[str, float]]] = {"map50": {}, "conf_agg": {}}

@@ -15,9 +15,10 @@ from respecd.lab.experiment.outcomes import Evaluator
 
 if TYPE_CHECKING:
     from respecd.config import Profile
+    from respecd.lab.experiment.platforms import LatencyTable
 
-__all__ = ["add_validation_arguments", "load_detector", "make_evaluator", "perception_identity", "rgb_resolutions",
-           "shipped_table_path"]
+__all__ = ["add_validation_arguments", "latency_table", "load_detector", "make_evaluator", "perception_identity",
+           "rgb_resolutions", "shipped_table_path"]
 
 log = structlog.get_logger(__name__)
 
@@ -72,6 +73,15 @@ def rgb_resolutions(controller: Any) -> list[tuple[int, int]]:
         if slot.modality == "rgb":
             out += [(int(s[0]), int(s[1])) for s in slot.settings if isinstance(s, tuple)]
     return sorted(set(out), key=lambda r: r[0] * r[1])
+
+
+def latency_table(profile: Profile, latency: str | Path) -> LatencyTable:
+    """The latency table ``latency`` names (a platform or a file) for every RGB size the profile's
+    static policy can select; a bad name or file fails here."""
+    from respecd.lab.experiment import platforms
+    from respecd.lab.experiment.rollout import controller_for
+
+    return platforms.resolve(latency, rgb_resolutions(controller_for(profile, "static")))
 
 
 def add_validation_arguments(parser: argparse.ArgumentParser) -> None:
