@@ -24,11 +24,14 @@ import itertools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from respecd.lab.detector.metrics import ImageResult, average_precision
+
+if TYPE_CHECKING:
+    from respecd.config import Profile
 
 RADAR_MODE = "range"
 
@@ -225,7 +228,7 @@ def main(a: argparse.Namespace) -> int:
     return 0
 
 
-def _identity(profile: Any, seed: int, worlds: int, duration_s: float, latency: str) -> dict[str, Any]:
+def _identity(profile: Profile, seed: int, worlds: int, duration_s: float, latency: str) -> dict[str, Any]:
     """Which table and worlds a run is of: the keys it shares with a ``bench scenarios`` JSON."""
     from respecd.lab.experiment.compare import world_seed_range
     from respecd.lab.experiment.setup import latency_table
