@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING, Any
 from respecd.argtypes import non_negative_int, positive_float, resolution, seed
 from respecd.errors import InputError
 from respecd.outputs import check_output_dir
+from respecd.record.simulated import record_simulated
 
 if TYPE_CHECKING:
     from respecd.config import Profile
@@ -66,7 +67,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
         rover = asyncio.run(_recording_overhead(work / "rover.mcap", size, args, rgb_only=False))
         rover_zstd = asyncio.run(_recording_overhead(work / "rover-zstd.mcap", size, args, False, "zstd"))
         profile, weights_note = _profile(args, (width, height), work)
-        log = _record_simulated(profile, work / "session.mcap", args)
+        log = record_simulated(profile, work / "session.mcap", args.seconds, args.seed)
         inferences: list[tuple[dict[str, Any], bool]] = []
         replay = _replay(profile, log, work, args, observe=_capture(profile, inferences))
         alone = detector_only(profile, inferences, replay["log_s"])
@@ -204,31 +205,6 @@ def _profile(args: argparse.Namespace, size: tuple[int, int], work: Path) -> tup
     if args.torch_threads:
         perception = perception.model_copy(update={"torch_threads": args.torch_threads})
     return base.model_copy(update={"sensors": sensors, "controller": controller, "perception": perception}), note
-
-
-def _record_simulated(profile: Profile, path: Path, args: argparse.Namespace) -> Path:
-    """A simulated session recorded in lockstep (as fast as the renderers go, no detector)."""
-    from respecd.drivers.base import DriverContext
-    from respecd.record.recorder import Recorder
-    from respecd.replay.lockstep import LockstepClock, LockstepLoop
-    from respecd.session import Session
-
-    quiet = profile.model_copy(update={"perception": profile.perception.model_copy(update={"enabled": False})})
-    config = profile.recording.model_copy(update={"enabled": True, "path": str(path), "queue_size": 65536})
-
-    async def session() -> None:
-        clock = LockstepClock(0.0)
-        recorder = Recorder(config, quiet, clock)
-        with tempfile.TemporaryDirectory() as state:
-            context = DriverContext(seed=args.seed, simulation=getattr(quiet, "simulation", None))
-            session = Session(quiet, clock, context, state_dir=Path(state), observers=[recorder])
-            task = asyncio.create_task(session.run(duration=args.seconds))
-            await clock.run(args.seconds)
-            await task
-
-    with asyncio.Runner(loop_factory=LockstepLoop) as runner:
-        runner.run(session())
-    return path
 
 
 def _replay(profile: Profile, log: Path, work: Path, args: argparse.Namespace, observe: Any = None) -> dict[str, Any]:
