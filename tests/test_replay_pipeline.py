@@ -1,6 +1,9 @@
-"""End to end through the CLI: a short simulated session recorded with ``--record``, replayed
-with ``--replay --speed max`` (deterministic), under several policies into one report, from
-a cut file, and refused with exit 2 for missing, empty or non-MCAP input."""
+"""End to end through the CLI: a short simulated session replayed with ``--replay --speed max``
+(deterministic), under several policies into one report, from a cut file, and refused with
+exit 2 for missing, empty or non-MCAP input. The replayed session is recorded in lockstep
+(``record_simulated``: the same frames however loaded the machine; live, a starved renderer
+left a single RGB frame in 4 s); one recorded live through ``respecd --record`` is read with
+the MCAP reader and its state directory replayed from."""
 
 from __future__ import annotations
 
@@ -30,10 +33,9 @@ def _fresh_logging() -> Iterator[None]:
     structlog.reset_defaults()
 
 
-@pytest.fixture(scope="module")
-def session_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """4 s of the simulated rover at 640x360, recorded through ``respecd --record``."""
-    root = tmp_path_factory.mktemp("session")
+def _test_profile(root: Path) -> Path:
+    """The simulated rover at 640x360 without depth or detector, several scenes and a dozen
+    chunks in 4 s; written to ``root/profile.yaml``."""
     profile = yaml.safe_load((CONFIGS / "sim-rover.yaml").read_text())
     profile["name"] = "sim-rover-test"
     profile["sensors"] = [s for s in profile["sensors"] if s["name"] != "depth"]  # keep the test light
@@ -41,12 +43,30 @@ def session_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     profile["perception"] = {"enabled": False}  # no trained weights in the test environment
     profile["simulation"]["scenario_duration_s"] = 1.5  # several scenes within the session
     profile["controller"] = {"decision_period_s": 0.5, "window_s": 0.5}
-    profile["recording"] = {**profile["recording"], "chunk_size_kib": 256}  # a dozen chunks, whatever the load
+    profile["recording"] = {**profile["recording"], "chunk_size_kib": 256}  # a dozen chunks
     config = root / "profile.yaml"
     config.write_text(yaml.safe_dump(profile))
+    return config
+
+
+@pytest.fixture(scope="module")
+def session_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """4 s of the simulated rover, recorded in lockstep: the same log on a loaded machine."""
+    from respecd.config import load_profile
+    from respecd.record.simulated import record_simulated
+
+    root = tmp_path_factory.mktemp("session")
+    return record_simulated(load_profile(_test_profile(root)), root / "session.mcap", seconds=4.0, seed=0)
+
+
+@pytest.fixture(scope="module")
+def live_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """4 s of the simulated rover recorded live (wall clock) through ``respecd --record``; how
+    many frames it holds depends on the machine's load."""
+    root = tmp_path_factory.mktemp("live")
     log = root / "session.mcap"
-    argv = [sys.executable, "-m", "respecd.cli", "--config", str(config), "--duration", "4", "--record", str(log),
-            "--state-dir", str(root / "state"), "--log-level", "warning", "--log-format", "json"]
+    argv = [sys.executable, "-m", "respecd.cli", "--config", str(_test_profile(root)), "--duration", "4",
+            "--record", str(log), "--state-dir", str(root / "state"), "--log-level", "warning", "--log-format", "json"]
     # a live run ends its process with os._exit (SIGTERM budget), so it gets a process of its own
     done = subprocess.run(argv, capture_output=True, text=True, timeout=120, check=False)
     assert done.returncode == 0, done.stderr
@@ -54,9 +74,9 @@ def session_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.mark.slow
-def test_recorded_session_opens_with_the_mcap_reader(session_log: Path) -> None:
+def test_recorded_session_opens_with_the_mcap_reader(live_log: Path) -> None:
     schemas: dict[str, set[str]] = {}
-    with open(session_log, "rb") as f:
+    with open(live_log, "rb") as f:
         reader = make_reader(f)
         decoders = DecoderFactory()
         for schema, channel, message in reader.iter_messages():
@@ -367,8 +387,8 @@ def test_speed_2_replays_on_a_scaled_wall_clock(session_log: Path, tmp_path: Pat
         entries[speed] = json.loads(report.read_text())["policies"]["heuristic"]
     entry = entries["2"]
     assert entry["speed"] == "2" and entry["latency_model"] == "none (perception off)"
-    # frames flowed in real (halved) time; how many depends on the recording run's rate and on
-    # what a busy loop drops (under load a third of lockstep's), so only that they flowed at all
+    # frames flowed in real (halved) time; how many depends on what a busy loop drops (under
+    # load a third of lockstep's), so only that they flowed at all
     logged = entries["max"]["compute"]["frames"]["rgb"]
     assert logged > 0 and entry["compute"]["frames"]["rgb"] > 0
     assert entry["timing"]["wall_s"] >= 0.7  # 1.5 s of log at 2x: paced by the wall clock, not lockstep
@@ -396,14 +416,14 @@ def _files(directory: Path) -> dict[str, str]:
 
 
 @pytest.mark.e2e
-def test_replay_reads_but_never_changes_a_live_state_directory(session_log: Path, tmp_path: Path) -> None:
-    state = session_log.parent / "state"
+def test_replay_reads_but_never_changes_a_live_state_directory(live_log: Path, tmp_path: Path) -> None:
+    state = live_log.parent / "state"
     before = _files(state)
     assert any(name.startswith("qtable-") for name in before)  # the live run saved its table
-    assert _replay(session_log, tmp_path / "a.json", "--state-dir", str(state)) == 0
+    assert _replay(live_log, tmp_path / "a.json", "--state-dir", str(state)) == 0
     assert _files(state) == before  # not renamed aside, not overwritten, nothing added
     saved = tmp_path / "learned.npz"
-    assert _replay(session_log, tmp_path / "b.json", "--state-dir", str(state), "--save-table", str(saved)) == 0
+    assert _replay(live_log, tmp_path / "b.json", "--state-dir", str(state), "--save-table", str(saved)) == 0
     assert _files(state) == before
     from respecd.control.persist import read_table
 

@@ -45,14 +45,14 @@ def _profile(root: Path, perception: dict) -> Path:
 
 @pytest.fixture(scope="module")
 def session_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """3 s of the simulated rover, recorded without the detector (the replays run it)."""
+    """3 s of the simulated rover, recorded in lockstep (the same log whatever the machine's
+    load) without the detector (the replays run it)."""
+    from respecd.config import load_profile
+    from respecd.record.simulated import record_simulated
+
     root = tmp_path_factory.mktemp("session")
-    log = root / "session.mcap"
-    argv = [*RESPECD, "--config", str(_profile(root, {"enabled": False})), "--duration", "3", "--record", str(log),
-            "--state-dir", str(root / "state"), "--log-level", "warning", "--log-format", "json"]
-    done = subprocess.run(argv, capture_output=True, text=True, timeout=120, check=False)
-    assert done.returncode == 0, done.stderr
-    return log
+    profile = load_profile(_profile(root, {"enabled": False}))
+    return record_simulated(profile, root / "session.mcap", seconds=3.0, seed=0)
 
 
 def _replay(log: Path, root: Path, runtime: str) -> dict:
