@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 
 from respecd.control.actions import ActionSpace, build_slots
@@ -209,3 +211,57 @@ def test_heuristic_reads_load_even_when_the_learner_leaves_it_out() -> None:
         chosen[load] = heuristic.step(obs).configs
     rgb_low, rgb_high = chosen[0.1][0], chosen[0.95][0]
     assert rgb_high.rate_hz < rgb_low.rate_hz  # high load: one rung down
+
+
+def test_shared_rate_ties_the_followers_to_the_first_sensor_and_each_chooses_its_setting() -> None:
+    """``shared_rate``: the detector runs on every new frame of its fastest input, so its inputs move as one."""
+    config = ActionSpaceConfig(shared_rate=("rgb", "thermal", "radar"))
+    sensors = [*_sensors(), DriverConfigBase(driver="sim", name="depth", modality="depth", resolution=(640, 480))]
+    slots = build_slots(config, sensors, {"flir": FLIR_CAPS}, shared_rate=config.shared_rate)
+    space = ActionSpace(slots, "factored")
+    assert [s.follows for s in slots] == [None, 0, 0, None]
+    assert slots[1].rates == (1.0, 5.0, 9.0, 9.0, 9.0)  # the leader's levels, clamped to the FLIR One
+    assert space.blocks == (15, 2, 2, 5) and space.columns == 24  # followers: a setting each, no rate
+    assert space.n == 15 * 2 * 2 * 5
+    assert space.descriptions()[15:19] == ["flir 160x120", "flir 320x240", "radar velocity", "radar range"]
+    for action in range(space.n):
+        position = space.apply(space.maximum(), action)
+        assert space.config_id(position) == action
+        cam, flir, radar, _ = space.requests(position)
+        assert radar.rate_hz == cam.rate_hz and flir.rate_hz == min(cam.rate_hz, 9.0)
+    top = space.requests(space.maximum())
+    assert [c.rate_hz for c in top] == [30.0, 9.0, 30.0, 30.0]
+    # what the drivers report is tied back to the leader's rate: the cells stay a position the table can name
+    applied = {"cam": dataclasses.replace(top[0], rate_hz=5.0), "flir": top[1], "radar": top[2]}
+    assert space.nearest(applied)[:3] == ((2, 1), (1, 1), (1, 1))
+    assert space.describe(space.config_id(space.nearest(applied))).startswith(
+        "cam 1280x720@5Hz flir 320x240@5Hz radar range@5Hz")
+
+
+def test_shared_rate_moves_only_the_leaders_rate() -> None:
+    config = ActionSpaceConfig(shared_rate=("rgb", "radar"))
+    space = ActionSpace(build_slots(config, _sensors(), shared_rate=config.shared_rate), "moves")
+    names = [space.describe(a) for a in range(space.n)]
+    assert "radar rate up" not in names and "flir rate up" in names
+    start = space.maximum()
+    down = space.apply(start, names.index("cam rate down"))
+    assert down[0][1] == down[2][1] == start[0][1] - 1 and down[1] == start[1]
+
+
+def test_shared_rate_names_controlled_modalities_only() -> None:
+    with pytest.raises(ValueError, match="shared_rate: depth not among the controlled modalities"):
+        ActionSpaceConfig(modalities=("rgb", "thermal"), shared_rate=("rgb", "depth"))
+
+
+def test_shared_rate_shapes_the_learner_not_the_baselines() -> None:
+    from respecd.config import load_profile
+    from respecd.control.controller import Controller
+
+    profile = load_profile("builtin:sim-rover")
+    actions = profile.controller.actions.model_copy(update={"shared_rate": ("rgb", "thermal", "radar")})
+    tied = profile.controller.model_copy(update={"actions": actions})
+    learner = Controller.from_profile(tied.model_copy(update={"policy": "learn"}), profile)
+    heuristic = Controller.from_profile(tied.model_copy(update={"policy": "heuristic"}), profile)
+    assert [s.follows for s in learner.space.slots if s.modality in ("thermal", "radar")] == [0, 0]
+    assert all(s.follows is None for s in heuristic.space.slots)
+    assert learner.layout()["actions"]["space"]["slots"][1]["follows"] == learner.space.slots[0].name

@@ -415,6 +415,8 @@ def test_per_sensor_rewards_take_out_the_other_sensors_costs() -> None:
     # reward -1.0 holds the costs -0.3 (read) and -0.5 (not read): the first keeps its own, the second only its own
     assert per_sensor_rewards(-1.0, [-0.3, -0.5], [True, False]) == pytest.approx([-0.5, -0.5])
     assert per_sensor_rewards(0.4, [-0.1, -0.2], [True, True]) == pytest.approx([0.6, 0.5])
+    # with shared_rate the first sensor's rate sets the second's: its block pays both costs
+    assert per_sensor_rewards(0.4, [-0.1, -0.2], [True, True], [None, 0]) == pytest.approx([0.4, 0.5])
 
 
 @pytest.mark.parametrize("credit", ["shared", "per-sensor"])

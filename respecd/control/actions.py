@@ -19,6 +19,12 @@ rate per slot. The profile chooses how actions move between positions:
 Capabilities fold into the space when they are known: rate levels above what a driver can
 do (the FLIR One stops near 9 Hz) collapse onto its maximum instead of becoming actions
 that change nothing, and unsupported resolutions are dropped.
+
+``shared_rate`` ties the rates of some sensors to the first of them (the *leader*): a follower
+slot chooses only its setting and runs at the leader's rate, clamped to what it can do. The
+detector runs on every new frame of its fastest input, so a camera at 1 Hz beside a radar at
+5 Hz saves bytes but not load; independent per-sensor rates left the learner unable to find
+"all of them slow" (docs/CONTROLLER.md "Actions").
 """
 
 from __future__ import annotations
@@ -45,6 +51,12 @@ class Slot:
     modality: Modality
     settings: tuple[Setting, ...]
     rates: tuple[float, ...]
+    follows: int | None = None  # index of the slot whose rate this one runs at (``shared_rate``)
+
+    @property
+    def cells(self) -> int:
+        """How many (setting, rate) cells the slot chooses from: a follower chooses its setting only."""
+        return len(self.settings) * (1 if self.follows is not None else len(self.rates))
 
     def request(self, setting: int, rate: int) -> SensorConfig:
         value = self.settings[setting]
@@ -124,20 +136,37 @@ def _fit_rates(levels: Iterable[float], caps: Capabilities | None, sync_cap: flo
     return tuple(sorted(fitted)) or (low,)
 
 
+def _follower_rates(leader: tuple[float, ...], caps: Capabilities | None, sync_cap: float) -> tuple[float, ...]:
+    """The rate a follower runs at for each of its leader's levels: the level, clamped to the device."""
+    low = max(MIN_RATE_HZ, caps.min_rate_hz if caps else MIN_RATE_HZ)
+    high = min(sync_cap, caps.max_rate_hz if caps else sync_cap)
+    return tuple(min(max(level, low), high) for level in leader)
+
+
 def build_slots(
     config: ActionSpaceConfig,
     sensors: Iterable[DriverConfigBase],
     capabilities: Mapping[str, Capabilities] | None = None,
     sync_cap_hz: float = 30.0,
+    shared_rate: Iterable[Modality] = (),
 ) -> tuple[Slot, ...]:
-    """One slot per enabled sensor whose modality the controller manages, in profile order."""
-    slots = []
+    """One slot per enabled sensor whose modality the controller manages, in profile order; the
+    sensors of ``shared_rate``'s modalities after the first of them follow its rate."""
+    tied = set(shared_rate)
+    slots: list[Slot] = []
+    leader: int | None = None
     for sensor in sensors:
         if not sensor.enabled or sensor.modality not in config.modalities:
             continue
         caps = (capabilities or {}).get(sensor.name)
         settings = _fit_settings(_settings_for(sensor.modality, sensor, config), caps, sensor.modality)
+        if sensor.modality in tied and leader is not None:
+            rates = _follower_rates(slots[leader].rates, caps, sync_cap_hz)
+            slots.append(Slot(sensor.name, sensor.modality, settings, rates, follows=leader))
+            continue
         rates = _fit_rates(config.rate_levels_hz, caps, sync_cap_hz)
+        if sensor.modality in tied:
+            leader = len(slots)
         slots.append(Slot(sensor.name, sensor.modality, settings, rates))
     return tuple(slots)
 
@@ -150,7 +179,7 @@ class ActionSpace:
             raise ConfigError("controller: no sensor to control (check controller.actions.modalities)")
         self.slots = slots
         self.mode = mode
-        self._radix = tuple(len(s.settings) * len(s.rates) for s in slots)
+        self._radix = tuple(s.cells for s in slots)
         self.n_configs = math.prod(self._radix)
         self.moves: tuple[Move, ...] = (KEEP, *self._build_moves()) if mode == "moves" else ()
         self.n = len(self.moves) if mode == "moves" else self.n_configs
@@ -170,7 +199,7 @@ class ActionSpace:
     def _build_moves(self) -> list[Move]:
         moves = []
         for i, slot in enumerate(self.slots):
-            if len(slot.rates) > 1:
+            if len(slot.rates) > 1 and slot.follows is None:
                 moves += [Move(i, "rate", -1), Move(i, "rate", +1)]
             if len(slot.settings) > 1:
                 moves += [Move(i, "setting", -1), Move(i, "setting", +1)]
@@ -185,21 +214,28 @@ class ActionSpace:
         """Mixed-radix number of a position (the product-mode action that selects it)."""
         index = 0
         for (setting, rate), slot, radix in zip(position, self.slots, self._radix, strict=True):
-            index = index * radix + setting * len(slot.rates) + rate
+            index = index * radix + (setting if slot.follows is not None else setting * len(slot.rates) + rate)
         return index
 
     def position_of(self, config_id: int) -> Position:
         cells = []
         for slot, radix in zip(reversed(self.slots), reversed(self._radix), strict=True):
             config_id, cell = divmod(config_id, radix)
-            cells.append(divmod(cell, len(slot.rates)))
-        return tuple(reversed(cells))
+            cells.append((cell, 0) if slot.follows is not None else divmod(cell, len(slot.rates)))
+        return self.tied(tuple(reversed(cells)))
+
+    def tied(self, position: Position) -> Position:
+        """``position`` with every follower at its leader's rate level (unchanged without ``shared_rate``)."""
+        if all(slot.follows is None for slot in self.slots):
+            return position
+        return tuple(cell if slot.follows is None else (cell[0], position[slot.follows][1])
+                     for cell, slot in zip(position, self.slots, strict=True))
 
     def nearest(self, applied: Mapping[str, SensorConfig]) -> Position:
         """The position closest to the drivers' current configurations (lowest if unknown)."""
-        return tuple(
+        return self.tied(tuple(
             slot.nearest(applied[slot.name]) if slot.name in applied else (0, 0) for slot in self.slots
-        )
+        ))
 
     # actions ---------------------------------------------------------------------------
     def apply(self, position: Position, action: int) -> Position:
@@ -217,7 +253,7 @@ class ActionSpace:
             setting = min(max(setting + move.step, 0), len(slot.settings) - 1)
         cells = list(position)
         cells[move.slot] = (setting, rate)
-        return tuple(cells)
+        return self.tied(tuple(cells))
 
     def hold_action(self, position: Position) -> int:
         """The action that keeps ``position`` (used while the dwell time forbids a switch)."""
@@ -242,12 +278,16 @@ class ActionSpace:
         if self.mode != "factored":
             return [self.describe(a) for a in range(self.n)]
         return [self.describe_cell(i, setting, rate) for i, slot in enumerate(self.slots)
-                for setting in range(len(slot.settings)) for rate in range(len(slot.rates))]
+                for setting in range(len(slot.settings))
+                for rate in ((None,) if slot.follows is not None else range(len(slot.rates)))]
 
-    def describe_cell(self, slot_index: int, setting: int, rate: int) -> str:
+    def describe_cell(self, slot_index: int, setting: int, rate: int | None) -> str:
+        """``rgb 640x360@5Hz``; a follower's column has no rate of its own: ``thermal 160x120``."""
         slot = self.slots[slot_index]
         value = slot.settings[setting]
         label = f"{value[0]}x{value[1]}" if isinstance(value, tuple) else (value or "")
+        if rate is None:
+            return f"{slot.name} {label}".rstrip()
         return f"{slot.name} {label}@{slot.rates[rate]:g}Hz".replace(" @", " ")
 
     def fingerprint_data(self) -> dict[str, Any]:
@@ -257,6 +297,7 @@ class ActionSpace:
             "slots": [
                 {"name": s.name, "modality": s.modality, "settings": [list(x) if isinstance(x, tuple) else x
                                                                        for x in s.settings], "rates": list(s.rates)}
+                | ({} if s.follows is None else {"follows": self.slots[s.follows].name})
                 for s in self.slots
             ],
         }

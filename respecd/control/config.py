@@ -227,12 +227,29 @@ class ActionSpaceConfig(StrictModel):
         (), description="Depth resolutions; empty keeps the sensor's configured resolution (rate moves only)."
     )
     max_actions: int = Field(4096, ge=1, le=1_000_000, description="Refuse a product space larger than this.")
+    shared_rate: tuple[ControlledModality, ...] = Field(
+        (),
+        description="Modalities that run at one rate, the first present one's (the others choose their setting "
+        "only, each clamped to what it can do). The detector runs on every new frame of its fastest input, so "
+        "a slower input beside a faster one saves bytes but not load. Learning policies only; the baselines "
+        "keep their own rates. Empty: every sensor chooses its own rate.",
+    )
 
     @model_validator(mode="after")
     def _rates_in_range(self) -> ActionSpaceConfig:
         bad = [r for r in self.rate_levels_hz if not MIN_RATE_HZ <= r <= MAX_RATE_HZ]
         if bad:
             raise ValueError(f"rate levels must lie in {MIN_RATE_HZ:g}..{MAX_RATE_HZ:g} Hz, got {bad}")
+        return self
+
+    @model_validator(mode="after")
+    def _shared_rate_is_controlled(self) -> ActionSpaceConfig:
+        stray = [m for m in self.shared_rate if m not in self.modalities]
+        if stray:
+            raise ValueError(f"shared_rate: {', '.join(stray)} not among the controlled modalities "
+                             f"({', '.join(self.modalities)})")
+        if len(set(self.shared_rate)) != len(self.shared_rate):
+            raise ValueError("shared_rate: a modality is listed twice")
         return self
 
 

@@ -86,7 +86,9 @@ class Controller:
         cls, config: ControllerConfig, profile: Profile, capabilities: Mapping[str, Capabilities] | None = None
     ) -> Controller:
         """Build the spaces from the profile's sensors (and the drivers' capabilities)."""
-        slots = build_slots(config.actions, profile.sensors, capabilities, profile.sync.max_rate_hz)
+        # like ``factors``, the tied rates shape the learner's actions; the baselines keep their own rates
+        shared = config.actions.shared_rate if config.policy in LEARNING_POLICIES else ()
+        slots = build_slots(config.actions, profile.sensors, capabilities, profile.sync.max_rate_hz, shared)
         space = ActionSpace(slots, config.actions.mode, config.actions.max_actions)
         modalities: list[str] = []
         for slot in slots:
@@ -199,7 +201,7 @@ class Controller:
         configs = [(slot.name, applied.get(slot.name, req) if applied else req)
                    for slot, req in zip(self.space.slots, requested, strict=True)]
         costs = sensor_costs(self.config.reward, configs, self.powers, radar_points)
-        return per_sensor_rewards(reward, costs, self._read)
+        return per_sensor_rewards(reward, costs, self._read, [slot.follows for slot in self.space.slots])
 
     def _choose(self, state: int, bins: tuple[int, ...]) -> tuple[int, Position]:
         if self.policy == "static":
@@ -272,7 +274,7 @@ class Controller:
         for i, slot in enumerate(self.space.slots):
             if slot.name in applied:
                 cells[i] = slot.nearest(applied[slot.name])
-        return tuple(cells)
+        return self.space.tied(tuple(cells))
 
     def _model_power(self, applied: Mapping[str, SensorConfig] | None) -> float:
         if applied:

@@ -54,12 +54,19 @@ def sensor_costs(weights: RewardWeights, configs: Iterable[tuple[str, SensorConf
             - weights.bandwidth * (sensor_bandwidth(config, radar_points) / 1e6) for name, config in configs]
 
 
-def per_sensor_rewards(reward: float, costs: Sequence[float], read: Sequence[bool]) -> list[float]:
+def per_sensor_rewards(reward: float, costs: Sequence[float], read: Sequence[bool],
+                       follows: Sequence[int | None] | None = None) -> list[float]:
     """Per-sensor credit (``reward.credit: per-sensor``): each sensor's reward is the whole reward with
     the other sensors' costs taken out, and a sensor the detector does not read (``read`` False) gets its
-    own costs alone — quality, staleness and latency do not depend on it, so they are only noise to it."""
+    own costs alone — quality, staleness and latency do not depend on it, so they are only noise to it.
+    ``follows``: per sensor, the sensor whose rate it runs at (``actions.shared_rate``) or None; a leader
+    also pays its followers' costs, since its rate sets theirs."""
     shared = reward - sum(costs)
-    return [shared + cost if reads else cost for cost, reads in zip(costs, read, strict=True)]
+    own = list(costs)
+    for i, leader in enumerate(follows or ()):
+        if leader is not None:
+            own[leader] += costs[i]
+    return [shared + mine if reads else cost for cost, mine, reads in zip(costs, own, read, strict=True)]
 
 
 def compute_power(busy: float, compute_w: float) -> float:
