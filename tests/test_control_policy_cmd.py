@@ -86,3 +86,19 @@ def test_policy_show_factored_table_names_a_cell_per_sensor(tmp_path: Path,
         "sync": "good", "confidence": "low", "dominant": "none"}))
     best = controller.space.describe(controller.table.greedy_tried(state))
     assert best.startswith("rgb ") and " depth " in best and best in row
+
+
+def test_policy_show_names_the_sensors_that_share_a_rate(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    profile = load_profile("builtin:sim-rover")
+    actions = profile.controller.actions.model_copy(update={"mode": "factored", "shared_rate": ("rgb", "radar")})
+    controller = Controller.from_profile(profile.controller.model_copy(update={"min_dwell_s": 0.0,
+                                                                               "actions": actions}), profile)
+    for step in range(30):
+        controller.step(Observation(t=float(step), n_percepts=10, illumination=0.6, conf_agg=0.1, latency_s=0.05))
+    path = tmp_path / "q.npz"
+    save_table(path, controller.table, controller.layout(), {"profile": profile.name})
+    assert main(["policy", "show", str(path)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].startswith("Q-table sim-rover: 3645 states x 32 actions")  # radar: 2 modes, no rate of its own
+    assert lines[2] == "shared rate: radar at rgb's rate"
+    assert " radar range " in lines[-1] or " radar velocity " in lines[-1]

@@ -61,6 +61,9 @@ def render(meta: dict[str, Any], q: np.ndarray, visits: np.ndarray, limit: int =
         f"states visited: {visited.size} of {n_states} ({100 * visited.size / n_states:.1f} %); "
         f"state-action pairs tried: {int((visits > 0).sum())} of {q.size} ({100 * (visits > 0).mean():.1f} %)",
     ]
+    followers = _followers(layout["actions"].get("space", {}).get("slots", []))
+    if followers:
+        lines.append(f"shared rate: {followers}")
     if visited.size == 0:
         return [*lines, "no state visited yet: nothing learned"]
     best_names, best_q = _best_tried(q[visited], visits[visited], actions, blocks)
@@ -82,6 +85,15 @@ def render(meta: dict[str, Any], q: np.ndarray, visits: np.ndarray, limit: int =
     if len(shown) < visited.size:
         lines.append(f"({len(shown)} of {visited.size} visited states shown, sorted by {sort}; --limit 0 shows all)")
     return lines
+
+
+def _followers(slots: list[dict[str, Any]]) -> str:
+    """'flir, radar at cam's rate' for a table learned with ``actions.shared_rate`` ('' without)."""
+    leaders: dict[str, list[str]] = {}
+    for slot in slots:
+        if "follows" in slot:
+            leaders.setdefault(slot["follows"], []).append(slot["name"])
+    return "; ".join(f"{', '.join(names)} at {leader}'s rate" for leader, names in leaders.items())
 
 
 def _best_tried(q: np.ndarray, visits: np.ndarray, names: list[str],
