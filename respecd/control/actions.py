@@ -54,7 +54,7 @@ class Slot:
     follows: int | None = None  # index of the slot whose rate this one runs at (``shared_rate``)
 
     @property
-    def cells(self) -> int:
+    def n_cells(self) -> int:
         """How many (setting, rate) cells the slot chooses from: a follower chooses its setting only."""
         return len(self.settings) * (1 if self.follows is not None else len(self.rates))
 
@@ -129,17 +129,21 @@ def _fit_settings(settings: tuple[Setting, ...], caps: Capabilities | None, moda
     return tuple(fitted)
 
 
-def _fit_rates(levels: Iterable[float], caps: Capabilities | None, sync_cap: float) -> tuple[float, ...]:
+def _rate_bounds(caps: Capabilities | None, sync_cap: float) -> tuple[float, float]:
+    """The lowest and highest rate a device can run at under the synchroniser's cap."""
     low = max(MIN_RATE_HZ, caps.min_rate_hz if caps else MIN_RATE_HZ)
-    high = min(sync_cap, caps.max_rate_hz if caps else sync_cap)
+    return low, min(sync_cap, caps.max_rate_hz if caps else sync_cap)
+
+
+def _fit_rates(levels: Iterable[float], caps: Capabilities | None, sync_cap: float) -> tuple[float, ...]:
+    low, high = _rate_bounds(caps, sync_cap)
     fitted = {min(max(level, low), high) for level in levels if math.isfinite(level)}
     return tuple(sorted(fitted)) or (low,)
 
 
 def _follower_rates(leader: tuple[float, ...], caps: Capabilities | None, sync_cap: float) -> tuple[float, ...]:
     """The rate a follower runs at for each of its leader's levels: the level, clamped to the device."""
-    low = max(MIN_RATE_HZ, caps.min_rate_hz if caps else MIN_RATE_HZ)
-    high = min(sync_cap, caps.max_rate_hz if caps else sync_cap)
+    low, high = _rate_bounds(caps, sync_cap)
     return tuple(min(max(level, low), high) for level in leader)
 
 
@@ -179,7 +183,7 @@ class ActionSpace:
             raise ConfigError("controller: no sensor to control (check controller.actions.modalities)")
         self.slots = slots
         self.mode = mode
-        self._radix = tuple(s.cells for s in slots)
+        self._radix = tuple(s.n_cells for s in slots)
         self.n_configs = math.prod(self._radix)
         self.moves: tuple[Move, ...] = (KEEP, *self._build_moves()) if mode == "moves" else ()
         self.n = len(self.moves) if mode == "moves" else self.n_configs
