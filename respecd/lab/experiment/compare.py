@@ -63,8 +63,9 @@ def rl_controller(profile: Profile, table_path: Path) -> Any:
     meta, q, visits = read_table(table_path)
     if meta.get("fingerprint") != fingerprint(controller.layout()) or q.shape != controller.table.shape:
         raise InputError(f"{table_path}: Q-table was learned for another state/action space than profile "
-                         f"{profile.name!r} (fingerprint {meta.get('fingerprint')}); retrain with "
-                         "`respecd train-policy`")
+                         f"{profile.name!r} (fingerprint {meta.get('fingerprint')}); pass the profile it was "
+                         f"trained with (--profile; the table names {meta.get('profile', '?')!r}) or retrain "
+                         "with `respecd train-policy`")
     controller.table.restore(q, visits, int(meta.get("updates", 0)), float(meta.get("epsilon", 0.0)))
     return controller
 
