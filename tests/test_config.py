@@ -58,6 +58,9 @@ def _ablation_difference(name: str, key: str) -> tuple[object, object]:
     base = load_profile("builtin:sim-rover").model_dump()
     ablation = load_profile(LAB_PROFILES / f"{name}.yaml").model_dump()
     base_value, ablation_value = base["controller"].pop(key), ablation["controller"].pop(key)
+    # the candidates were learned with each sensor at its own rate; sim-rover ties them since M44TS
+    assert ablation["controller"]["actions"].pop("shared_rate") == ()
+    assert base["controller"]["actions"].pop("shared_rate") == ("rgb", "thermal", "radar")
     assert ablation.pop("name") == name and base.pop("name") == "sim-rover"
     assert ablation == base
     return base_value, ablation_value

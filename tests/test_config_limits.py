@@ -18,6 +18,14 @@ from respecd.profile_yaml import MAX_VALUES, parse
 
 REPO = Path(__file__).resolve().parents[1]
 SIM = (REPO / "configs" / "sim-rover.yaml").read_text()
+
+
+def _with_controller(keys: str) -> str:
+    """sim-rover.yaml with ``keys`` (indented lines) added to its ``controller:`` block."""
+    assert "\ncontroller:\n" in SIM
+    return SIM.replace("\ncontroller:\n", "\ncontroller:\n" + keys, 1)
+
+
 # 377 bytes: ten levels of nine aliases each stand for 9^10 values
 BOMB = "a: &a [1,1,1,1,1,1,1,1,1]\n" + "".join(
     f"{c}: &{c} [" + ",".join(["*" + p] * 9) + "]\n" for p, c in zip("abcdefghi", "bcdefghij", strict=True)
@@ -124,7 +132,7 @@ def test_booleans_and_texts_are_strict_too(tmp_path: Path) -> None:
 
 
 def test_paths_stay_inside_their_directories(tmp_path: Path) -> None:
-    problem, = problems_of(tmp_path, SIM + "controller:\n  table_file: ../outside.npz\n")
+    problem, = problems_of(tmp_path, _with_controller("  table_file: ../outside.npz\n"))
     assert "controller.table_file: Value error, must be a file name inside the state directory" in problem
     with pytest.raises(ConfigError, match="no built-in profile"):
         load_profile("builtin:../configs/sim-rover")

@@ -15,7 +15,7 @@ from respecd.control.state import Observation
 
 def _learned_table(path: Path) -> Controller:
     profile = load_profile("builtin:sim-rover")
-    moves = profile.controller.actions.model_copy(update={"mode": "moves"})
+    moves = profile.controller.actions.model_copy(update={"mode": "moves", "shared_rate": ()})  # each its own rate
     controller = Controller.from_profile(profile.controller.model_copy(update={"min_dwell_s": 0.0, "actions": moves}),
                                          profile)
     for step in range(60):
@@ -70,7 +70,8 @@ def test_policy_show_factored_table_names_a_cell_per_sensor(tmp_path: Path,
                                                              capsys: pytest.CaptureFixture[str]) -> None:
     profile = load_profile("builtin:sim-rover")
     config = profile.controller.model_copy(update={
-        "min_dwell_s": 0.0, "actions": profile.controller.actions.model_copy(update={"mode": "factored"})})
+        "min_dwell_s": 0.0, "actions": profile.controller.actions.model_copy(update={"mode": "factored",
+                                                                                     "shared_rate": ()})})
     controller = Controller.from_profile(config, profile)
     for step in range(30):  # a low ConfAgg keeps every target below the optimistic 1.0: each cell gets tried
         controller.step(Observation(t=float(step), n_percepts=10, illumination=0.6, conf_agg=0.1, latency_s=0.05))

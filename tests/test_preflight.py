@@ -21,8 +21,12 @@ RESPECD = [sys.executable, "-m", "respecd.cli"]
 
 
 def _profile(tmp_path: Path, extra: str, name: str = "p.yaml") -> Path:
+    """sim-rover.yaml plus ``extra``; an extra ``controller:`` block's keys go into the profile's own."""
     path = tmp_path / name
-    path.write_text(SIM + extra)
+    if extra.startswith("controller:\n"):
+        path.write_text(SIM.replace("\ncontroller:\n", "\n" + extra, 1))
+    else:
+        path.write_text(SIM + extra)
     return path
 
 
