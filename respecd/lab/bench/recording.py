@@ -13,11 +13,9 @@ on-disk bytes over the messages' time span (what ``../shared/checks/real-logs`` 
 from __future__ import annotations
 
 import argparse
-import asyncio
 import os
 import tempfile
 from pathlib import Path
-from types import SimpleNamespace
 from typing import TYPE_CHECKING, Any
 
 from respecd.argtypes import positive_float, resolution, seed
@@ -29,7 +27,6 @@ FORMATS = {
     "raw": {"rgb_format": "raw", "thermal_format": "raw", "depth_format": "raw"},
     "lossless": {"rgb_format": "png", "thermal_format": "png", "depth_format": "png"},
 }
-TAPS = ("frame", "bundle", "percept", "decision", "config")
 ONE_FILE = float(1 << 20)  # MiB: no rotation, each encoding's replay covers the whole session
 IOU_MATCH = 0.5  # a detection moved, not vanished, when its best match overlaps this much
 
@@ -93,47 +90,19 @@ def _profile(base: Profile, size: tuple[int, int]) -> Profile:
 def record(profile: Profile, encodings: dict[str, dict[str, Any]], seconds: float, sim_seed: int,
            work: Path) -> dict[str, Path]:
     """One lockstep simulated session (no detector) recorded by one recorder per encoding."""
-    from respecd.drivers.base import DriverContext
     from respecd.record.recorder import Recorder
-    from respecd.replay.lockstep import LockstepClock, LockstepLoop
-    from respecd.session import Session
+    from respecd.record.simulated import run_recorded
 
-    quiet = profile.model_copy(update={"perception": profile.perception.model_copy(update={"enabled": False})})
     paths = {name: work / f"{name}.mcap" for name in encodings}
-
-    async def session() -> None:
-        clock = LockstepClock(0.0)
-        recorders = [Recorder(profile.recording.model_copy(update={**over, "enabled": True, "path": str(paths[name]),
-                                                                   "queue_size": 65536, "rotate_mib": ONE_FILE}),
-                              quiet, clock, drain_s=None)
-                     for name, over in encodings.items()]
-        # the taps only: the recorders close after the session, with everything queued encoded
-        # (a lockstep session queues faster than real time; the daemon's stop budget would drop it)
-        taps = [SimpleNamespace(start=_nothing, close=_nothing, **{f"on_{k}": getattr(r, f"on_{k}") for k in TAPS})
-                for r in recorders]
-        try:
-            for recorder in recorders:
-                recorder.start()
-            with tempfile.TemporaryDirectory() as state:
-                context = DriverContext(seed=sim_seed, simulation=getattr(quiet, "simulation", None))
-                run = Session(quiet, clock, context, state_dir=Path(state), observers=taps)
-                task = asyncio.create_task(run.run(duration=seconds))
-                await clock.run(seconds)
-                await task
-        finally:  # a writer thread left open would keep the interpreter from exiting
-            for recorder in recorders:
-                await recorder.close()
-        for recorder in recorders:
-            if recorder.dropped or recorder.errors:
-                raise RuntimeError(f"{recorder.paths}: {recorder.dropped} dropped, {recorder.errors} not encoded")
-
-    with asyncio.Runner(loop_factory=LockstepLoop) as runner:
-        runner.run(session())
+    recorders = run_recorded(profile, lambda quiet, clock: [
+        Recorder(profile.recording.model_copy(update={**over, "enabled": True, "path": str(paths[name]),
+                                                      "queue_size": 65536, "rotate_mib": ONE_FILE}),
+                 quiet, clock, drain_s=None)
+        for name, over in encodings.items()], seconds, sim_seed)
+    for recorder in recorders:
+        if recorder.dropped or recorder.errors:
+            raise RuntimeError(f"{recorder.paths}: {recorder.dropped} dropped, {recorder.errors} not encoded")
     return paths
-
-
-def _nothing() -> None:
-    pass
 
 
 def detections(profile: Profile, log: Path, work: Path) -> list[tuple[float, tuple[Any, ...]]]:
