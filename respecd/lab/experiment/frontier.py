@@ -24,14 +24,11 @@ import itertools
 import json
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from respecd.lab.detector.metrics import ImageResult, average_precision
-
-if TYPE_CHECKING:
-    from respecd.config import Profile
 
 RADAR_MODE = "range"
 
@@ -141,9 +138,10 @@ def run(profile_ref: str, seed: int, worlds: int, duration_s: float, latency: st
     from multiprocessing import get_context
 
     from respecd.config import load_profile
+    from respecd.lab.experiment.setup import run_identity
 
     profile = load_profile(profile_ref)
-    identity = _identity(profile, seed, worlds, duration_s, latency)  # a bad table fails here
+    identity = run_identity(profile, seed, worlds, duration_s, latency)  # a bad table fails here
     names = list(family(profile.controller.actions))
     todo = [(profile_ref, seed, worlds, duration_s, latency, cache_dir, random_detector, n) for n in names]
     cells: dict[str, dict[str, Cell]] = {}
@@ -162,28 +160,22 @@ def run(profile_ref: str, seed: int, worlds: int, duration_s: float, latency: st
 def _configuration(job: tuple[Any, ...]) -> dict[str, Cell]:
     """One configuration held by ``static`` on every world set (a worker process): a cell per scenario."""
     from respecd.config import load_profile
-    from respecd.lab.experiment.compare import world_sets
-    from respecd.lab.experiment.rollout import Rollout, controller_for
-    from respecd.lab.experiment.setup import latency_table, load_detector, make_evaluator
+    from respecd.lab.experiment.rollout import controller_for
+    from respecd.lab.experiment.setup import run_world_sets
 
     profile_ref, seed, worlds, duration_s, latency, cache_dir, random_detector, name = job
     base = load_profile(profile_ref)
-    table = latency_table(base, latency)
     actions = base.controller.actions
     pinned = actions.model_copy(update=family(actions)[name])
     profile = base.model_copy(update={"controller": base.controller.model_copy(update={"actions": pinned})})
-    evaluator = make_evaluator(load_detector(profile, random_init=random_detector), profile, True, cache_dir)
-    rollout = Rollout(profile, evaluator, table.latency, 1.0, table.accelerator_w)
+    runs = run_world_sets(profile, lambda: controller_for(profile, "static"), seed, worlds, duration_s, latency,
+                          cache_dir, random_detector)
     out: dict[str, Cell] = {}
-    try:
-        for pieces in world_sets(profile.simulation.scenarios, seed, worlds, duration_s):
-            for record in rollout.run(controller_for(profile, "static"), pieces):
-                cell = out.setdefault(record.scenario, Cell())
-                cell.images.extend(record.images)
-                cell.busy.append(record.load.busy)
-                cell.read_bps.append(record.bandwidth_read_bps)
-    finally:
-        evaluator.cache.close()
+    for record in itertools.chain.from_iterable(runs):
+        cell = out.setdefault(record.scenario, Cell())
+        cell.images.extend(record.images)
+        cell.busy.append(record.load.busy)
+        cell.read_bps.append(record.bandwidth_read_bps)
     return out
 
 
@@ -228,20 +220,12 @@ def main(a: argparse.Namespace) -> int:
     return 0
 
 
-def _identity(profile: Profile, seed: int, worlds: int, duration_s: float, latency: str) -> dict[str, Any]:
-    """Which table and worlds a run is of: the keys it shares with a ``bench scenarios`` JSON."""
-    from respecd.lab.experiment.compare import world_seed_range
-    from respecd.lab.experiment.setup import latency_table
-
-    return {"latency_table": latency_table(profile, latency).label(),
-            "world_seeds": world_seed_range(seed, worlds, profile.simulation.scenarios), "duration_s": duration_s}
-
-
 def _worlds(a: argparse.Namespace) -> dict[str, Any]:
     """What a bench JSON must share with this run to be compared: the table, the worlds, their length."""
     from respecd.config import load_profile
+    from respecd.lab.experiment.setup import run_identity
 
-    identity = _identity(load_profile(a.profile), a.seed, a.worlds, a.duration, a.latency)
+    identity = run_identity(load_profile(a.profile), a.seed, a.worlds, a.duration, a.latency)
     identity["duration_s_per_scenario"] = identity.pop("duration_s")
     return identity
 

@@ -78,11 +78,10 @@ def run_grid(profile_ref: str, seed: int, worlds: int, duration_s: float, latenc
     from multiprocessing import get_context
 
     from respecd.config import load_profile
-    from respecd.lab.experiment.compare import world_seed_range
-    from respecd.lab.experiment.setup import latency_table
+    from respecd.lab.experiment.setup import run_identity
 
     profile = load_profile(profile_ref)
-    table = latency_table(profile, latency)  # a bad name fails here
+    identity = run_identity(profile, seed, worlds, duration_s, latency)  # a bad table fails here
     todo = [(profile_ref, seed, worlds, duration_s, latency, cache_dir, random_detector, rules)
             for rules in points or grid()]
     out = []
@@ -91,28 +90,21 @@ def run_grid(profile_ref: str, seed: int, worlds: int, duration_s: float, latenc
             out.append(figures)
             print(json.dumps(figures), flush=True)
     chosen = choose(out)
-    return {"latency_table": table.label(), "world_seeds": world_seed_range(seed, worlds, profile.simulation.scenarios),
-            "duration_s": duration_s, "map_tolerance": MAP_TOLERANCE, "points": out, "chosen": chosen["name"],
+    return {**identity, "map_tolerance": MAP_TOLERANCE, "points": out, "chosen": chosen["name"],
             "mean_load": float(np.mean([p["accelerator_load"] for p in out]))}
 
 
 def _point(job: tuple[Any, ...]) -> dict[str, Any]:
     """One grid point: the heuristic alone with ``rules`` on every world set (a worker process)."""
     from respecd.config import load_profile
-    from respecd.lab.experiment.compare import figures, world_sets
-    from respecd.lab.experiment.rollout import Rollout, controller_for
-    from respecd.lab.experiment.setup import latency_table, load_detector, make_evaluator
+    from respecd.lab.experiment.compare import figures
+    from respecd.lab.experiment.rollout import controller_for
+    from respecd.lab.experiment.setup import run_world_sets
 
     profile_ref, seed, worlds, duration_s, latency, cache_dir, random_detector, rules = job
     profile = load_profile(profile_ref)
-    table = latency_table(profile, latency)
-    evaluator = make_evaluator(load_detector(profile, random_init=random_detector), profile, True, cache_dir)
-    rollout = Rollout(profile, evaluator, table.latency, 1.0, table.accelerator_w)
-    try:
-        runs = [rollout.run(controller_for(profile, "heuristic", rules), pieces)
-                for pieces in world_sets(profile.simulation.scenarios, seed, worlds, duration_s)]
-    finally:
-        evaluator.cache.close()
+    runs = run_world_sets(profile, lambda: controller_for(profile, "heuristic", rules), seed, worlds, duration_s,
+                          latency, cache_dir, random_detector)
     return {"name": name(rules), "rules": rules.model_dump(mode="json"), **figures(runs)}
 
 

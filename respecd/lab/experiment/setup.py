@@ -4,6 +4,7 @@ with its cache, and the measured latency table."""
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -18,7 +19,7 @@ if TYPE_CHECKING:
     from respecd.lab.experiment.platforms import LatencyTable
 
 __all__ = ["add_validation_arguments", "latency_table", "load_detector", "make_evaluator", "perception_identity",
-           "rgb_resolutions", "shipped_table_path"]
+           "rgb_resolutions", "run_identity", "run_world_sets", "shipped_table_path"]
 
 log = structlog.get_logger(__name__)
 
@@ -82,6 +83,32 @@ def latency_table(profile: Profile, latency: str | Path) -> LatencyTable:
     from respecd.lab.experiment.rollout import controller_for
 
     return platforms.resolve(latency, rgb_resolutions(controller_for(profile, "static")))
+
+
+def run_identity(profile: Profile, seed: int, worlds: int, duration_s: float, latency: str | Path) -> dict[str, Any]:
+    """Which latency table and worlds a run is of: the keys an experiment's JSON shares with ``bench scenarios``'
+    (whose duration key is ``duration_s_per_scenario``); a bad table name or file fails here."""
+    from respecd.lab.experiment.compare import world_seed_range
+
+    return {"latency_table": latency_table(profile, latency).label(),
+            "world_seeds": world_seed_range(seed, worlds, profile.simulation.scenarios), "duration_s": duration_s}
+
+
+def run_world_sets(profile: Profile, make_controller: Callable[[], Any], seed: int, worlds: int, duration_s: float,
+                   latency: str | Path, cache_dir: Path | None = None, random_detector: bool = False) -> list[Any]:
+    """A fresh ``make_controller()`` driving the benchmark's rollout (one accelerator, the latency table, one
+    scored instant a second) on each of ``worlds`` world sets from ``seed``: one list of window records per set."""
+    from respecd.lab.experiment.compare import world_sets
+    from respecd.lab.experiment.rollout import Rollout
+
+    table = latency_table(profile, latency)
+    evaluator = make_evaluator(load_detector(profile, random_init=random_detector), profile, True, cache_dir)
+    rollout = Rollout(profile, evaluator, table.latency, 1.0, table.accelerator_w)
+    try:
+        return [rollout.run(make_controller(), pieces)
+                for pieces in world_sets(profile.simulation.scenarios, seed, worlds, duration_s)]
+    finally:
+        evaluator.cache.close()
 
 
 def add_validation_arguments(parser: argparse.ArgumentParser) -> None:
