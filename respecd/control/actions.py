@@ -183,6 +183,8 @@ class ActionSpace:
             raise ConfigError("controller: no sensor to control (check controller.actions.modalities)")
         self.slots = slots
         self.mode = mode
+        self.follows: tuple[int | None, ...] = tuple(s.follows for s in slots)  # per slot: whose rate it runs at
+        self._shared = any(f is not None for f in self.follows)
         self._radix = tuple(s.n_cells for s in slots)
         self.n_configs = math.prod(self._radix)
         self.moves: tuple[Move, ...] = (KEEP, *self._build_moves()) if mode == "moves" else ()
@@ -230,10 +232,10 @@ class ActionSpace:
 
     def tied(self, position: Position) -> Position:
         """``position`` with every follower at its leader's rate level (unchanged without ``shared_rate``)."""
-        if all(slot.follows is None for slot in self.slots):
+        if not self._shared:
             return position
-        return tuple(cell if slot.follows is None else (cell[0], position[slot.follows][1])
-                     for cell, slot in zip(position, self.slots, strict=True))
+        return tuple(cell if leader is None else (cell[0], position[leader][1])
+                     for cell, leader in zip(position, self.follows, strict=True))
 
     def nearest(self, applied: Mapping[str, SensorConfig]) -> Position:
         """The position closest to the drivers' current configurations (lowest if unknown)."""

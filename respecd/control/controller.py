@@ -201,7 +201,7 @@ class Controller:
         configs = [(slot.name, applied.get(slot.name, req) if applied else req)
                    for slot, req in zip(self.space.slots, requested, strict=True)]
         costs = sensor_costs(self.config.reward, configs, self.powers, radar_points)
-        return per_sensor_rewards(reward, costs, self._read, [slot.follows for slot in self.space.slots])
+        return per_sensor_rewards(reward, costs, self._read, self.space.follows)
 
     def _choose(self, state: int, bins: tuple[int, ...]) -> tuple[int, Position]:
         if self.policy == "static":
